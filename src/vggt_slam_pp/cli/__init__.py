@@ -1,0 +1,1 @@
+"""Command-line interface (``vggt-slam-pp``)."""

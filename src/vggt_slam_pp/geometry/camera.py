@@ -90,8 +90,8 @@ class PinholeCamera:
             raise GeometryError(f"uv must be [N, 2], got {uv.shape}")
         if self.distorted and len(uv):
             criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-            xy = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, np.asarray(self.dist, np.float64),
-                                         None, None, criteria).reshape(-1, 2)
+            xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, np.asarray(self.dist, np.float64),
+                                     None, None, criteria=criteria).reshape(-1, 2)
         else:
             xy = np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], axis=1)
         return np.concatenate([xy, np.ones((len(uv), 1))], axis=1)

@@ -13,8 +13,8 @@ Layouts (``detect_layout`` checks them in this order):
 ``vkitti2``   Virtual KITTI 2 scene variation: ``frames/rgb/Camera_0/rgb_XXXXX.jpg``,
               ``frames/depth/Camera_0/depth_XXXXX.png`` (cm), ``intrinsic.txt``, ``extrinsic.txt``.
 ``video``     a video file.
-``images``    a folder of images in natural order; timestamps from numeric file names
-              (nanoseconds when > 1e12) or ``index / fps``.
+``images``    a folder of images in natural order; timestamps from file names that are times
+              (decimal seconds, or integers >= 1e6; nanoseconds when > 1e12), else ``index / fps``.
 ============  ======================================================================================
 """
 
@@ -61,13 +61,18 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def _numeric_timestamps(paths: list[Path]) -> np.ndarray | None:
+    """Timestamps from file names such as ``1305031102.175304.png`` (seconds) or
+    ``1403638538577829376.png`` (nanoseconds when > 1e12). Small integers (``000123.png``) are frame
+    numbers, not times, and give None, as do names that are not increasing numbers."""
     try:
         vals = np.array([float(p.stem) for p in paths])
     except ValueError:
         return None
     if len(vals) > 1 and np.any(np.diff(vals) <= 0):
         return None
-    return vals * 1e-9 if vals.size and vals.max() > 1e12 else vals
+    if all("." not in p.stem for p in paths) and vals.max() < 1e6:
+        return None
+    return vals * 1e-9 if vals.max() > 1e12 else vals
 
 
 def open_image_folder(root: Path, fps: float = 1.0) -> ImageSequence:

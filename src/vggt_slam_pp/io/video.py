@@ -32,6 +32,7 @@ class VideoSource(FrameSource):
     """
 
     layout = "video"
+    _cap: cv2.VideoCapture | None = None
 
     def __init__(self, path: Path, stride: int = 1, target_fps: float | None = None) -> None:
         super().__init__(path)
@@ -53,7 +54,6 @@ class VideoSource(FrameSource):
             raise InputError(f"stride must be >= 1, got {stride}")
         self.stride = stride
         self._decoded = np.arange(0, count, stride)
-        self._cap: cv2.VideoCapture | None = None
         self._next = -1  # decoded index the open capture will return next
 
     def __len__(self) -> int:

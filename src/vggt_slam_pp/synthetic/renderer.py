@@ -30,26 +30,43 @@ __all__ = ["Renderer", "make_texture"]
 _NEAR = 0.05
 
 
-@functools.lru_cache(maxsize=4)
-def make_texture(size: int = 1024, seed: int = 0, levels: int = 5) -> tuple[np.ndarray, ...]:
-    """Tileable multi-octave value noise in [0, 1] and its mip pyramid (``levels`` images, float32).
+def _dead_leaves(size: int, rng: np.random.Generator, count: int = 30000) -> np.ndarray:
+    """Tileable "dead leaves" image in [0, 1]: overlapping disks and squares of random grey with power-law
+    radii. Scale-invariant and full of corners at every scale, like natural surfaces."""
+    img = np.full((size, size), 0.5, np.float32)
+    r_min, r_max = 1.5, size / 16
+    u = rng.random(count)
+    # radius density ~ r^-3 (inverse-CDF sampling)
+    radii = 1.0 / np.sqrt((1 - u) / r_min**2 + u / r_max**2)
+    centres = rng.uniform(0, size, (count, 2))
+    greys = rng.random(count)
+    square = rng.random(count) < 0.5
+    for (cx, cy), r, g, sq in zip(centres, radii, greys, square):
+        for dx in (-size, 0, size) if (cx < r or cx > size - r) else (0,):
+            for dy in (-size, 0, size) if (cy < r or cy > size - r) else (0,):
+                c = (int(round((cx + dx) * 4)), int(round((cy + dy) * 4)))
+                if sq:
+                    h = int(round(r * 4 * 0.8))
+                    cv2.rectangle(img, (c[0] - h, c[1] - h), (c[0] + h, c[1] + h), float(g), -1, cv2.LINE_AA, 2)
+                else:
+                    cv2.circle(img, c, int(round(r * 4)), float(g), -1, cv2.LINE_AA, 2)
+    return img
 
-    Cached per arguments: treat the arrays as read-only."""
+
+@functools.lru_cache(maxsize=4)
+def make_texture(size: int = 1024, seed: int = 0, levels: int = 6) -> tuple[np.ndarray, ...]:
+    """Tileable procedural texture in [0, 1] and its mip pyramid (``levels`` images, float32).
+
+    A dead-leaves pattern (sharp edges and corners at all scales) mixed with multi-octave value noise
+    (gradual shading). Cached per arguments: treat the arrays as read-only."""
     rng = np.random.default_rng(seed)
-    tex = np.zeros((size, size), np.float32)
-    amp_total = 0.0
-    for octave in range(2, 9):  # cells of size/4 ... size/256 pixels
+    noise = np.zeros((size, size), np.float32)
+    for octave in range(2, 7):  # cells of size/4 ... size/64 pixels
         cells = 2**octave
-        grid = rng.random((cells, cells)).astype(np.float32)
-        grid = np.tile(grid, (3, 3))  # periodic neighbours for a seamless resize
-        up = cv2.resize(grid, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size : 2 * size, size : 2 * size]
-        amp = 1.0 / (1.0 + 0.35 * (8 - octave))
-        tex += amp * up
-        amp_total += amp
-    tex /= amp_total
-    tex = (tex - tex.min()) / max(float(np.ptp(tex)), 1e-6)
-    # sharpen the contrast so corners are strong
-    tex = np.clip(0.5 + 1.6 * (tex - 0.5), 0.0, 1.0)
+        grid = np.tile(rng.random((cells, cells)).astype(np.float32), (3, 3))  # periodic neighbours
+        noise += cv2.resize(grid, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size : 2 * size, size : 2 * size]
+    noise = (noise - noise.min()) / max(float(np.ptp(noise)), 1e-6)
+    tex = np.clip(0.7 * _dead_leaves(size, rng) + 0.3 * noise, 0.0, 1.0)
     pyramid = [tex]
     for _ in range(levels - 1):
         prev = pyramid[-1]
@@ -77,7 +94,7 @@ class Renderer:
         self.world = world
         self.camera = camera.without_distortion()
         self.max_depth = float(max_depth)
-        self.tpu = float(texels_per_unit or (48.0 if world.style == "outdoor" else 256.0))
+        self.tpu = float(texels_per_unit or (64.0 if world.style == "outdoor" else 256.0))
         self.pyramid = make_texture(seed=texture_seed)
         H, W = camera.height, camera.width
         v, u = np.mgrid[0:H, 0:W].astype(np.float64)
@@ -198,10 +215,11 @@ class Renderer:
             tu[solid] = u_face + self._tex_off[sid, 0]
             tv[solid] = v_face + self._tex_off[sid, 1]
             albedo[solid] = self._colors[sid]
-        # mip level from the pixel footprint on the surface (grazing angles widen it)
+        # mip level from the pixel footprint on the surface; grazing angles stretch it along one axis
+        # only, so the isotropic level uses the geometric mean of the two axes (1 / sqrt(cos))
         dnorm = np.linalg.norm(d, axis=-1)
         cosang = np.abs(np.sum(normal * d, axis=-1)) / dnorm
-        footprint = self.tpu * dep * dnorm / self.camera.fx / np.clip(cosang, 0.25, 1.0)
+        footprint = self.tpu * dep * dnorm / self.camera.fx / np.sqrt(np.clip(cosang, 0.05, 1.0))
         level = np.clip(np.log2(np.maximum(footprint, 1e-6)), 0, len(self.pyramid) - 1)
         tex = np.zeros((H, W), np.float32)
         lo = np.floor(level).astype(int)
@@ -222,7 +240,7 @@ class Renderer:
             wgt = np.where(lo == lev, 1.0 - frac, np.where(lo + 1 == lev, frac, 0.0)).astype(np.float32)
             tex += wgt * sample
         shade = 0.45 + 0.55 * np.clip(normal @ self._sun, 0.0, 1.0)
-        rgb = albedo * (0.3 + 0.7 * tex[..., None]) * shade[..., None]
+        rgb = albedo * (0.12 + 0.88 * tex[..., None]) * shade[..., None]
         # sky: vertical gradient by the ray's elevation
         elev = np.clip(d[..., 2] / dnorm, -1.0, 1.0)
         sky = np.stack([0.55 + 0.2 * elev, 0.7 + 0.15 * elev, 0.95 + 0.0 * elev], axis=-1)

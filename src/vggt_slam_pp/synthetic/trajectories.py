@@ -57,13 +57,16 @@ def look_along(positions: np.ndarray, forward: np.ndarray, pitch_deg: float = -5
 
 
 def resample_path(points: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points equally spaced in arc length along ``points [M, D]`` and their tangents."""
+    """``n`` points equally spaced in arc length along a dense polyline ``points [M, D]``, and the
+    polyline's unit tangents there (taken from the dense path, so coarse resampling stays exact)."""
+    points = points[np.r_[True, np.linalg.norm(np.diff(points, axis=0), axis=1) > 0]]  # no repeated points
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     s = np.r_[0.0, np.cumsum(seg)]
     q = np.linspace(0.0, s[-1], n)
+    dense_tangent = np.gradient(points, s, axis=0)
     out = np.stack([np.interp(q, s, points[:, d]) for d in range(points.shape[1])], axis=1)
-    tang = np.gradient(out, axis=0)
-    return out, tang
+    tang = np.stack([np.interp(q, s, dense_tangent[:, d]) for d in range(points.shape[1])], axis=1)
+    return out, tang / np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
 
 
 def _timestamps(n: int, fps: float) -> np.ndarray:

@@ -1,0 +1,101 @@
+"""The command line: JSON outputs and one-line errors with non-zero exit codes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import random_trajectory
+
+from vggt_slam_pp.cli.main import main
+from vggt_slam_pp.io.trajectory import Trajectory, write_trajectory
+
+
+def _run(capsys, *argv):
+    code = main(list(map(str, argv)))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_eval_json(tmp_path, rng, capsys):
+    gt = random_trajectory(rng, 100)
+    est = Trajectory(gt.timestamps + 0.001, gt.poses.copy())
+    est.poses[:, :3, 3] *= 3.0  # a scaled copy: Sim(3) alignment removes it
+    write_trajectory(tmp_path / "gt.txt", gt, "tum")
+    write_trajectory(tmp_path / "est.txt", est, "tum")
+    code, out, _ = _run(capsys, "eval", "--gt", tmp_path / "gt.txt", "--est", tmp_path / "est.txt", "--json")
+    assert code == 0
+    res = json.loads(out)
+    for key in ("ate_rmse", "ate_mean", "ate_median", "ate_max", "n_matched", "scale", "rpe_trans_rmse"):
+        assert key in res
+    assert res["ate_rmse"] < 1e-6 and res["n_matched"] == 100
+    assert res["scale"] == pytest.approx(1 / 3.0)
+    code, out, _ = _run(capsys, "eval", "--gt", tmp_path / "gt.txt", "--est", tmp_path / "est.txt", "--align", "se3",
+                        "--json")
+    assert json.loads(out)["ate_rmse"] > 1.0
+
+
+def test_eval_kitti_files(tmp_path, rng, capsys):
+    gt = random_trajectory(rng, 30)
+    write_trajectory(tmp_path / "gt.kitti", gt, "kitti")
+    write_trajectory(tmp_path / "est.kitti", gt, "kitti")
+    code, out, _ = _run(capsys, "eval", "--gt", tmp_path / "gt.kitti", "--est", tmp_path / "est.kitti", "--json")
+    assert code == 0 and json.loads(out)["n_matched"] == 30
+
+
+def _one_line_error(code, out, err, *needles):
+    assert code != 0
+    lines = [ln for ln in err.strip().splitlines() if ln]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for n in needles:
+        assert n in lines[0]
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path, rng, capsys):
+    gt = random_trajectory(rng, 20, t0=0.0)
+    write_trajectory(tmp_path / "gt.txt", gt, "tum")
+    write_trajectory(tmp_path / "late.txt", random_trajectory(rng, 20, t0=500.0), "tum")
+    (tmp_path / "bad.txt").write_text("0.0 1 2 3 0 0 0 1\n0.1 1 2 three 0 0 0 1\n")
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "corrupt").mkdir()
+    (tmp_path / "corrupt" / "000001.png").write_bytes(b"garbage")
+    _one_line_error(*_run(capsys, "eval", "--gt", tmp_path / "gt.txt", "--est", tmp_path / "bad.txt"), "bad.txt:2")
+    _one_line_error(*_run(capsys, "eval", "--gt", tmp_path / "gt.txt", "--est", tmp_path / "late.txt"),
+                    "no timestamps match")
+    _one_line_error(*_run(capsys, "eval", "--gt", tmp_path / "nope.txt", "--est", tmp_path / "gt.txt"), "not found")
+    _one_line_error(*_run(capsys, "info", tmp_path / "missing"), "input not found")
+    _one_line_error(*_run(capsys, "info", tmp_path / "empty"), "empty")
+    _one_line_error(*_run(capsys, "info", tmp_path / "corrupt"), "cannot read image", "000001.png")
+    _one_line_error(*_run(capsys, "synth", "--trajectory", tmp_path / "bad.txt", "--out", tmp_path / "s"), "bad.txt:2")
+
+
+def test_info_json_on_euroc(shared_data, capsys):
+    code, out, _ = _run(capsys, "info", shared_data / "euroc_mh05_sample", "--json")
+    info = json.loads(out)
+    assert code == 0
+    assert info["layout"] == "euroc" and info["frames"] == 585 and info["ground_truth"] is True
+    assert info["frames_with_ground_truth"] == 585 and info["width"] == 752
+
+
+def test_synth_then_info_and_demo(tmp_path, capsys):
+    code, out, _ = _run(capsys, "synth", "--scene", "figure8", "--frames", 5, "--width", 64, "--height", 48,
+                        "--out", tmp_path / "seq", "--json")
+    assert code == 0 and json.loads(out)["frames"] == 5
+    code, out, _ = _run(capsys, "info", tmp_path / "seq", "--json")
+    info = json.loads(out)
+    assert info["layout"] == "tum" and info["has_depth"] and info["frames_with_ground_truth"] == 5
+    code, out, _ = _run(capsys, "demo", "--out", tmp_path / "demo", "--frames", 20, "--width", 64, "--height", 48)
+    assert code == 0 and "ATE" in out
+    report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert report["frames"] == 20 and np.isfinite(report["ate_rmse_simulated_odometry"])
+
+
+def test_module_entry_point_exit_code(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "vggt_slam_pp", "info", str(tmp_path / "missing")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip().startswith("error: input not found")
+    r = subprocess.run([sys.executable, "-m", "vggt_slam_pp", "--version"], capture_output=True, text=True)
+    assert r.returncode == 0 and "vggt-slam-pp" in r.stdout

@@ -177,3 +177,15 @@ def test_written_sequence_reads_back_through_the_tum_reader(tmp_path):
     np.testing.assert_allclose(f.depth[keep], depth[keep], atol=1.0 / 5000)
     assert np.all(f.depth[depth >= 65535 / 5000] == 0)  # beyond the 16-bit range: unknown
     assert World.load(tmp_path / "seq" / "world.json").solids[0].to_dict() == scene.world.solids[0].to_dict()
+
+
+def test_trajectory_file_with_repeated_stamps_is_resampled(tmp_path):
+    from vggt_slam_pp.io.trajectory import Trajectory, write_trajectory
+
+    base = block_loop(40, length=20, width=14, corner_radius=3, lane_offset=1.0)
+    ts = base.timestamps.copy()
+    ts[10] = ts[9]  # a repeated stamp, as in TUM fr2/desk's ground truth
+    write_trajectory(tmp_path / "t.txt", Trajectory(ts, base.poses), "tum")
+    traj, style = from_trajectory_file(tmp_path / "t.txt", 25)
+    assert len(traj) == 25 and style == "indoor"
+    assert np.all(np.isfinite(traj.poses))

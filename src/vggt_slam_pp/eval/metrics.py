@@ -19,7 +19,7 @@ import numpy as np
 from vggt_slam_pp.errors import EvaluationError, GeometryError
 from vggt_slam_pp.geometry.alignment import umeyama
 from vggt_slam_pp.geometry.lie import decompose_sim3, rotation_angle, se3_inverse
-from vggt_slam_pp.io.trajectory import Trajectory
+from vggt_slam_pp.io.trajectory import Trajectory, nearest_time_indices
 
 AlignMode = Literal["sim3", "se3", "none"]
 ALIGN_MODES: tuple[str, ...] = ("sim3", "se3", "none")
@@ -51,15 +51,9 @@ def associate(ref: Trajectory, est: Trajectory, max_diff: float = 0.01, offset: 
     t_est = est.timestamps + offset
     est_shorter = len(t_est) < len(t_ref)
     short, long_ = (t_est, t_ref) if est_shorter else (t_ref, t_est)
-    order = np.argsort(long_, kind="stable")
-    srt = long_[order]
-    pos = np.clip(np.searchsorted(srt, short), 0, len(srt) - 1)
-    left = np.maximum(pos - 1, 0)
-    # nearest neighbour; a tie goes to the later stamp
-    pick = np.where(np.abs(srt[pos] - short) <= np.abs(short - srt[left]), pos, left)
-    ok = np.abs(srt[pick] - short) <= max_diff
-    i_short = np.nonzero(ok)[0]
-    i_long = order[pick[ok]]
+    match = nearest_time_indices(short, long_, max_diff)
+    i_short = np.nonzero(match >= 0)[0]
+    i_long = match[i_short]
     if len(i_short) == 0:
         raise EvaluationError(
             f"no timestamps match within {max_diff} s: reference spans [{t_ref.min():.3f}, {t_ref.max():.3f}] s, "

@@ -34,7 +34,14 @@ from vggt_slam_pp.geometry.camera import PinholeCamera
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import FrameSource, ImageSequence
 from vggt_slam_pp.io.images import IMAGE_EXTENSIONS, read_rgb
-from vggt_slam_pp.io.trajectory import Trajectory, read_euroc_csv, read_kitti, read_trajectory, read_tum
+from vggt_slam_pp.io.trajectory import (
+    Trajectory,
+    nearest_time_indices,
+    read_euroc_csv,
+    read_kitti,
+    read_trajectory,
+    read_tum,
+)
 from vggt_slam_pp.io.video import VIDEO_EXTENSIONS, VideoSource
 
 log = logging.getLogger(__name__)
@@ -106,18 +113,6 @@ def _read_list(path: Path) -> tuple[np.ndarray, list[str]]:
     return np.array(times), names
 
 
-def _nearest(src: np.ndarray, dst: np.ndarray, max_diff: float) -> np.ndarray:
-    """For each ``src`` time the index of the nearest ``dst`` time, or -1 beyond ``max_diff``."""
-    if len(dst) == 0:
-        return np.full(len(src), -1)
-    order = np.argsort(dst)
-    srt = dst[order]
-    pos = np.clip(np.searchsorted(srt, src), 0, len(srt) - 1)
-    left = np.maximum(pos - 1, 0)
-    pick = np.where(np.abs(srt[pos] - src) <= np.abs(src - srt[left]), pos, left)
-    return np.where(np.abs(srt[pick] - src) <= max_diff, order[pick], -1)
-
-
 def open_tum(root: Path, depth_max_diff: float = 0.02) -> ImageSequence:
     """TUM RGB-D sequence folder (also our synthetic sequences). Depth associated within 20 ms."""
     rgb_list = root / "rgb.txt"
@@ -147,7 +142,7 @@ def open_tum(root: Path, depth_max_diff: float = 0.02) -> ImageSequence:
     depth_list = root / "depth.txt"
     if depth_list.is_file():
         dts, dnames = _read_list(depth_list)
-        match = _nearest(ts, dts, depth_max_diff)
+        match = nearest_time_indices(ts, dts, depth_max_diff)
         depth_paths = [root / dnames[m] if m >= 0 else None for m in match]
     gt = None
     gt_path = root / "groundtruth.txt"

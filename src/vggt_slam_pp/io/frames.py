@@ -13,7 +13,7 @@ import numpy as np
 from vggt_slam_pp.errors import InputError
 from vggt_slam_pp.geometry.camera import PinholeCamera
 from vggt_slam_pp.io.images import read_depth, read_rgb
-from vggt_slam_pp.io.trajectory import Trajectory
+from vggt_slam_pp.io.trajectory import Trajectory, nearest_time_indices
 
 log = logging.getLogger(__name__)
 
@@ -126,15 +126,9 @@ class FrameSource(ABC):
         gt = self.ground_truth()
         if gt is None or len(gt) == 0:
             return None
-        ts = self.timestamps
-        order = np.argsort(gt.timestamps, kind="stable")
-        srt = gt.timestamps[order]
-        pos = np.clip(np.searchsorted(srt, ts), 0, len(srt) - 1)
-        left = np.maximum(pos - 1, 0)
-        pick = np.where(np.abs(srt[pos] - ts) <= np.abs(ts - srt[left]), pos, left)
-        ok = np.abs(srt[pick] - ts) <= max_diff
-        idx = np.nonzero(ok)[0]
-        return idx, Trajectory(ts[idx], gt.poses[order[pick[ok]]])
+        match = nearest_time_indices(self.timestamps, gt.timestamps, max_diff)
+        idx = np.nonzero(match >= 0)[0]
+        return idx, Trajectory(self.timestamps[idx], gt.poses[match[idx]])
 
     def info(self) -> dict:
         """What the source contains, as a JSON-friendly dictionary."""

@@ -43,6 +43,7 @@ __all__ = [
     "write_kitti",
     "write_euroc_csv",
     "atomic_write_text",
+    "nearest_time_indices",
 ]
 
 
@@ -102,6 +103,21 @@ class Trajectory:
         """Poses of a rigidly attached sensor: ``T_world_sensor = T_world_cam @ T_cam_sensor``."""
         return Trajectory(self.timestamps, self.poses @ np.asarray(T_cam_sensor), self.has_timestamps,
                           self.interpolated)
+
+
+def nearest_time_indices(query: np.ndarray, reference: np.ndarray, max_diff: float) -> np.ndarray:
+    """For each ``query [N]`` time, the index of the nearest ``reference [M]`` time (any order), or -1 when
+    the nearest is farther than ``max_diff`` seconds. A tie goes to the later reference time."""
+    query = np.asarray(query, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if len(reference) == 0:
+        return np.full(len(query), -1)
+    order = np.argsort(reference, kind="stable")
+    srt = reference[order]
+    pos = np.clip(np.searchsorted(srt, query), 0, len(srt) - 1)
+    left = np.maximum(pos - 1, 0)
+    pick = np.where(np.abs(srt[pos] - query) <= np.abs(query - srt[left]), pos, left)
+    return np.where(np.abs(srt[pick] - query) <= max_diff, order[pick], -1)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

@@ -163,11 +163,15 @@ def from_trajectory_file(
         poses = _KITTI_TO_Z_UP @ poses
     elif fmt == "euroc":
         poses = poses @ EUROC_T_BODY_CAM0
-    ts = traj.timestamps
-    n = len(traj) if n_frames is None else int(n_frames)
+    order = np.argsort(traj.timestamps, kind="stable")
+    keep = order[np.r_[True, np.diff(traj.timestamps[order]) > 0]]  # sorted, repeated stamps dropped
+    poses, ts = poses[keep], traj.timestamps[keep]
+    if len(keep) < len(traj):
+        log.warning("%s: %d poses with unsorted or repeated timestamps dropped", path, len(traj) - len(keep))
+    n = len(ts) if n_frames is None else int(n_frames)
     if n < 2:
         raise SyntheticError("a trajectory needs at least 2 frames")
-    if n != len(traj):
+    if n != len(ts):
         q = np.linspace(ts[0], ts[-1], n)
         rots = Slerp(ts, Rotation.from_matrix(poses[:, :3, :3]))(q).as_matrix()
         pos = np.stack([np.interp(q, ts, poses[:, d, 3]) for d in range(3)], axis=1)

@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import random_trajectory
 
+from conftest import random_trajectory
 from vggt_slam_pp.cli.main import main
 from vggt_slam_pp.io.trajectory import Trajectory, write_trajectory
 

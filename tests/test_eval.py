@@ -6,8 +6,8 @@ import copy
 
 import numpy as np
 import pytest
-from conftest import random_sim3, random_trajectory
 
+from conftest import random_sim3, random_trajectory
 from vggt_slam_pp.errors import EvaluationError
 from vggt_slam_pp.eval import associate, compute_ate, compute_rpe
 from vggt_slam_pp.geometry import decompose_sim3, se3_exp
@@ -42,6 +42,7 @@ def test_ate_is_zero_for_a_similar_copy(rng):
 def test_ate_and_rpe_match_evo(rng, align):
     from evo.core import metrics, sync
     from evo.core import trajectory as evo_traj
+
     from vggt_slam_pp.geometry import matrix_to_quat
 
     gt = random_trajectory(rng, 300)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import random_sim3
 
+from conftest import random_sim3
 from vggt_slam_pp.errors import GeometryError
 from vggt_slam_pp.geometry import (
     PinholeCamera,
@@ -164,7 +164,7 @@ def test_robust_sim3_with_30_percent_outliers(seed):
     dst[out] = rng.uniform(-30, 30, size=(len(out), 3))
     res = estimate_sim3_robust(src, dst, threshold=0.05, seed=seed)
     s_true = decompose_sim3(T)[0]
-    s_est, R_est, t_est = decompose_sim3(res.T_dst_src)
+    s_est, R_est, _t_est = decompose_sim3(res.T_dst_src)
     assert abs(s_est / s_true - 1) < 1e-3
     assert rotation_angle(R_est.T @ decompose_sim3(T)[1]) < 1e-3
     truth = np.ones(n, bool)

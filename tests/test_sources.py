@@ -8,8 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import random_trajectory
 
+from conftest import random_trajectory
 from vggt_slam_pp.errors import InputError
 from vggt_slam_pp.geometry import se3_inverse
 from vggt_slam_pp.io import detect_layout, open_source
@@ -99,7 +99,7 @@ def test_tum_layout(tmp_path, rng):
     assert f.depth is not None and f.depth.dtype == np.float32
     np.testing.assert_allclose(f.depth, 3.0)
     assert src.camera.fx == 517.3 and src.camera.distorted  # published freiburg1 calibration
-    idx, traj = src.frame_ground_truth()
+    idx, _traj = src.frame_ground_truth()
     assert len(idx) == len(src)
     info = src.info()
     assert info["layout"] == "tum" and info["frames"] == 6 and info["has_depth"] and info["ground_truth"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import random_trajectory
 
+from conftest import random_trajectory
 from vggt_slam_pp.errors import TrajectoryError
 from vggt_slam_pp.io.trajectory import (
     Trajectory,

@@ -17,7 +17,13 @@ from vggt_slam_pp.geometry.lie import (
     so3_log,
     transform_points,
 )
-from vggt_slam_pp.geometry.quaternion import matrix_to_quat, pose_from_tq, pose_to_tq, quat_to_matrix, reorder_quat
+from vggt_slam_pp.geometry.quaternion import (
+    matrix_to_quat,
+    pose_from_tq,
+    pose_to_tq,
+    quat_to_matrix,
+    reorder_quat,
+)
 
 __all__ = [
     "PinholeCamera", "RobustSim3", "decompose_sim3", "estimate_sim3_robust", "hat", "make_sim3",

@@ -40,7 +40,7 @@ class PinholeCamera:
             raise GeometryError(f"distortion must have 0, 4, 5 or 8 coefficients, got {len(self.dist)}")
 
     @classmethod
-    def from_matrix(cls, K: np.ndarray, width: int, height: int, dist=()) -> "PinholeCamera":
+    def from_matrix(cls, K: np.ndarray, width: int, height: int, dist=()) -> PinholeCamera:
         """From a ``[3, 3]`` intrinsic matrix."""
         K = np.asarray(K, dtype=np.float64)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height),
@@ -55,13 +55,13 @@ class PinholeCamera:
     def distorted(self) -> bool:
         return any(d != 0.0 for d in self.dist)
 
-    def scaled(self, width: int, height: int) -> "PinholeCamera":
+    def scaled(self, width: int, height: int) -> PinholeCamera:
         """The same camera for an image resized to ``width x height`` (pixel-centre convention)."""
         sx, sy = width / self.width, height / self.height
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=(self.cx + 0.5) * sx - 0.5,
                        cy=(self.cy + 0.5) * sy - 0.5, width=int(width), height=int(height))
 
-    def without_distortion(self) -> "PinholeCamera":
+    def without_distortion(self) -> PinholeCamera:
         return replace(self, dist=())
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:

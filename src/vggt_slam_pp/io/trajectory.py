@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from vggt_slam_pp.errors import TrajectoryError
+from vggt_slam_pp.errors import GeometryError, TrajectoryError
 from vggt_slam_pp.geometry.quaternion import pose_from_tq, pose_to_tq
 
 log = logging.getLogger(__name__)
@@ -90,16 +90,16 @@ class Trajectory:
         """Sum of distances between consecutive positions (world units)."""
         return float(np.sum(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
 
-    def subset(self, idx: np.ndarray) -> "Trajectory":
+    def subset(self, idx: np.ndarray) -> Trajectory:
         interp = None if self.interpolated is None else self.interpolated[idx]
         return Trajectory(self.timestamps[idx], self.poses[idx], self.has_timestamps, interp)
 
-    def transformed(self, T_new_world: np.ndarray) -> "Trajectory":
+    def transformed(self, T_new_world: np.ndarray) -> Trajectory:
         """The same trajectory expressed in another world frame: ``T_new_cam = T_new_world @ T_world_cam``."""
         return Trajectory(self.timestamps, np.asarray(T_new_world) @ self.poses, self.has_timestamps,
                           self.interpolated)
 
-    def right_multiplied(self, T_cam_sensor: np.ndarray) -> "Trajectory":
+    def right_multiplied(self, T_cam_sensor: np.ndarray) -> Trajectory:
         """Poses of a rigidly attached sensor: ``T_world_sensor = T_world_cam @ T_cam_sensor``."""
         return Trajectory(self.timestamps, self.poses @ np.asarray(T_cam_sensor), self.has_timestamps,
                           self.interpolated)
@@ -166,7 +166,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     data = _columns(path, _read_rows(path, None), 8, "TUM", exact=True)
     try:
         poses = pose_from_tq(data[:, 1:4], data[:, 4:8], "xyzw")
-    except Exception as exc:  # zero quaternion etc.
+    except GeometryError as exc:  # zero or non-finite quaternion
         raise TrajectoryError(f"{path}: invalid pose: {exc}") from None
     return Trajectory(data[:, 0], poses)
 
@@ -192,7 +192,7 @@ def read_euroc_csv(path: str | os.PathLike) -> Trajectory:
     data = _columns(path, _read_rows(path, ","), 8, "EuRoC CSV", exact=False)
     try:
         poses = pose_from_tq(data[:, 1:4], data[:, 4:8], "wxyz")
-    except Exception as exc:
+    except GeometryError as exc:
         raise TrajectoryError(f"{path}: invalid pose: {exc}") from None
     return Trajectory(data[:, 0] * 1e-9, poses)
 
@@ -246,7 +246,7 @@ def _sim3_to_rigid_rows(poses: np.ndarray) -> np.ndarray:
 def write_tum(path: str | os.PathLike, traj: Trajectory) -> None:
     t, q = pose_to_tq(_sim3_to_rigid_rows(traj.poses), "xyzw")
     lines = [f"{ts:.9f} {x[0]:.9f} {x[1]:.9f} {x[2]:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}"
-             for ts, x, qq in zip(traj.timestamps, t, q)]
+             for ts, x, qq in zip(traj.timestamps, t, q, strict=False)]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
@@ -259,7 +259,7 @@ def write_euroc_csv(path: str | os.PathLike, traj: Trajectory) -> None:
     t, q = pose_to_tq(_sim3_to_rigid_rows(traj.poses), "wxyz")
     lines = ["#timestamp [ns], p_x [m], p_y [m], p_z [m], q_w [], q_x [], q_y [], q_z []"]
     lines += [f"{int(round(ts * 1e9))},{x[0]:.9f},{x[1]:.9f},{x[2]:.9f},{qq[0]:.9f},{qq[1]:.9f},{qq[2]:.9f},{qq[3]:.9f}"
-              for ts, x, qq in zip(traj.timestamps, t, q)]
+              for ts, x, qq in zip(traj.timestamps, t, q, strict=False)]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 

@@ -41,7 +41,7 @@ def _dead_leaves(size: int, rng: np.random.Generator, count: int = 30000) -> np.
     centres = rng.uniform(0, size, (count, 2))
     greys = rng.random(count)
     square = rng.random(count) < 0.5
-    for (cx, cy), r, g, sq in zip(centres, radii, greys, square):
+    for (cx, cy), r, g, sq in zip(centres, radii, greys, square, strict=False):
         for dx in (-size, 0, size) if (cx < r or cx > size - r) else (0,):
             for dy in (-size, 0, size) if (cy < r or cy > size - r) else (0,):
                 c = (int(round((cx + dx) * 4)), int(round((cy + dy) * 4)))

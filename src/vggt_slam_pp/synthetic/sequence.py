@@ -15,9 +15,9 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -99,7 +99,7 @@ def write_sequence(
     depth_lines = ["# depth maps", "# timestamp filename"]
     t0 = time.perf_counter()
     t_render = 0.0
-    for i, (ts, T) in enumerate(zip(traj.timestamps, traj.poses)):
+    for i, (ts, T) in enumerate(zip(traj.timestamps, traj.poses, strict=False)):
         tr = time.perf_counter()
         rgb, depth = renderer.render(T)
         t_render += time.perf_counter() - tr

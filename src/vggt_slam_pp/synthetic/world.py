@@ -89,7 +89,7 @@ class Solid:
                 "texture_offset": self.texture_offset.tolist(), "ramp": self.ramp}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Solid":
+    def from_dict(cls, d: dict) -> Solid:
         return cls(d["kind"], np.asarray(d["center"], float), np.asarray(d["size"], float), float(d["yaw"]),
                    np.asarray(d["color"], float), np.asarray(d["texture_offset"], float), bool(d["ramp"]))
 
@@ -109,7 +109,7 @@ class World:
                                           "solids": [s.to_dict() for s in self.solids]}))
 
     @classmethod
-    def load(cls, path: str | Path) -> "World":
+    def load(cls, path: str | Path) -> World:
         d = json.loads(Path(path).read_text())
         return cls(tuple(Solid.from_dict(s) for s in d["solids"]), d["style"], int(d["seed"]),
                    np.asarray(d["ground_color"], float))

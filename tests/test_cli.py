@@ -87,6 +87,8 @@ def test_synth_then_info_and_demo(tmp_path, capsys):
     code, out, _ = _run(capsys, "info", tmp_path / "seq", "--json")
     info = json.loads(out)
     assert info["layout"] == "tum" and info["has_depth"] and info["frames_with_ground_truth"] == 5
+    code, out, _ = _run(capsys, "info", tmp_path / "seq")
+    assert code == 0 and "depth: yes; intrinsics: yes; ground truth: 5 frames matched" in out
     code, out, _ = _run(capsys, "demo", "--out", tmp_path / "demo", "--frames", 20, "--width", 64, "--height", 48)
     assert code == 0 and "ATE" in out
     report = json.loads((tmp_path / "demo" / "report.json").read_text())

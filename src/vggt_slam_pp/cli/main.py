@@ -72,9 +72,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     else:
         print(f"{info['path']}: {info['layout']}, {info['frames']} frames, {info['width']}x{info['height']}, "
               f"{info['duration_s']:.2f} s")
+        gt = f"{info['frames_with_ground_truth']} frames matched" if info["ground_truth"] else "no"
         print(f"  depth: {'yes' if info['has_depth'] else 'no'}; intrinsics: "
-              f"{'yes' if info['intrinsics'] else 'no'}; ground truth: "
-              f"{info['frames_with_ground_truth']} frames matched" if info["ground_truth"] else "no")
+              f"{'yes' if info['intrinsics'] else 'no'}; ground truth: {gt}")
     return 0
 
 

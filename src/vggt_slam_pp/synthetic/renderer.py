@@ -100,8 +100,9 @@ class Renderer:
         v, u = np.mgrid[0:H, 0:W].astype(np.float64)
         self._rays_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], -1)
         solids = world.solids
-        self._planes_n = np.array([s.planes()[0] for s in solids]).reshape(-1, 6, 3)
-        self._planes_c = np.array([s.planes()[1] for s in solids]).reshape(-1, 6)
+        planes = [s.planes() for s in solids]
+        self._planes_n = np.array([n for n, _ in planes]).reshape(-1, 6, 3)
+        self._planes_c = np.array([c for _, c in planes]).reshape(-1, 6)
         self._corners = np.array([s.corners() for s in solids]).reshape(-1, 8, 3)
         self._centres = self._corners.mean(axis=1) if len(solids) else np.zeros((0, 3))
         self._radii = (np.linalg.norm(self._corners - self._centres[:, None], axis=2).max(axis=1)

@@ -31,3 +31,11 @@ class EvaluationError(VggtSlamError):
 
 class SyntheticError(VggtSlamError):
     """Bad parameters for a synthetic world, trajectory or rendering."""
+
+
+class ModelError(VggtSlamError):
+    """A network cannot be built or run: bad configuration, wrong input shape, non-finite output."""
+
+
+class WeightsError(ModelError):
+    """Weights cannot be found, downloaded, read or matched to a model (missing/unexpected keys)."""

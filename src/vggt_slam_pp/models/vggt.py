@@ -143,11 +143,16 @@ class Aggregator(nn.Module):
         self.frame_blocks = nn.ModuleList(Block(C, **block) for _ in range(a.depth))
         self.global_blocks = nn.ModuleList(Block(C, **block) for _ in range(a.depth))
         self.patch_start_idx = 1 + a.num_register_tokens
-        self.register_buffer("_resnet_mean", torch.tensor(IMAGENET_MEAN).view(1, 1, 3, 1, 1), persistent=False)
-        self.register_buffer("_resnet_std", torch.tensor(IMAGENET_STD).view(1, 1, 3, 1, 1), persistent=False)
+        self.reset_buffers()
         if not self.camera_token.is_meta:
             nn.init.normal_(self.camera_token, std=1e-6)
             nn.init.normal_(self.register_token, std=1e-6)
+
+    def reset_buffers(self) -> None:
+        """(Re)create the ImageNet normalisation buffers (not in the checkpoint; needed after a meta build)."""
+        device = "cpu" if self.camera_token.is_meta else self.camera_token.device
+        for name, value in (("_resnet_mean", IMAGENET_MEAN), ("_resnet_std", IMAGENET_STD)):
+            self.register_buffer(name, torch.tensor(value, device=device).view(1, 1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor, keep: set[int] | None = None) -> list[torch.Tensor | None]:
         """images [B,S,3,H,W] in [0,1] -> list of ``depth`` entries [B,S,P',2C] (None unless in ``keep``;

@@ -10,6 +10,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 DATA = SHARED / "data"
+REFERENCE = SHARED / "reference"
 
 
 @pytest.fixture
@@ -22,6 +23,14 @@ def shared_data() -> Path:
     if not DATA.is_dir():
         pytest.skip("../shared/data is not present")
     return DATA
+
+
+@pytest.fixture(scope="session")
+def reference() -> Path:
+    """``../shared/reference`` (model parity fixtures and manifests); skips when absent."""
+    if not (REFERENCE / "fixtures").is_dir():
+        pytest.skip("../shared/reference is not present")
+    return REFERENCE
 
 
 def random_sim3(rng: np.random.Generator, with_scale: bool = True) -> np.ndarray:

@@ -101,3 +101,22 @@ def test_module_entry_point_exit_code(tmp_path):
     assert r.returncode == 2 and r.stderr.strip().startswith("error: input not found")
     r = subprocess.run([sys.executable, "-m", "vggt_slam_pp", "--version"], capture_output=True, text=True)
     assert r.returncode == 0 and "vggt-slam-pp" in r.stdout
+
+
+def test_weights_command_offline(tmp_path, monkeypatch, capsys):
+    import torch
+
+    from vggt_slam_pp.models import build_dinov2
+
+    monkeypatch.setenv("VGGT_SLAM_PP_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    code, out, _ = _run(capsys, "weights", "--json")
+    assert code == 0 and json.loads(out)["weights"] == []
+    _one_line_error(*_run(capsys, "weights", "fetch", "vggt-1b"), "--weights PATH")
+    _one_line_error(*_run(capsys, "weights", "import", tmp_path / "missing.pt"), "not found")
+    bad = tmp_path / "tiny.pt"
+    torch.save(build_dinov2({"embed_dim": 48, "depth": 1, "num_heads": 3}).state_dict(), bad)
+    _one_line_error(*_run(capsys, "weights", "import", bad, "--name", "dinov2_vits14"), "missing keys")
+    code, out, _ = _run(capsys, "weights")
+    assert code == 0 and "no weights cached" in out

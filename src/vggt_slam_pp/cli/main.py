@@ -126,6 +126,38 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ weights
+def cmd_weights(args: argparse.Namespace) -> int:
+    from vggt_slam_pp.models import weights as W
+
+    if args.action == "import":
+        if len(args.targets) != 1:
+            raise VggtSlamError("weights import takes exactly one PATH (and --name)")
+        target = W.import_weights(args.targets[0], args.name)
+        print(f"imported {args.targets[0]} as {args.name}: {target} ({target.stat().st_size / 1e9:.2f} GB)")
+        return 0
+    if args.action == "fetch":
+        for name in args.targets or ["vggt-1b"]:
+            path = W.fetch_weights(name)
+            print(f"{name}: {path}")
+        return 0
+    if args.targets:
+        raise VggtSlamError("weights list takes no arguments")
+    cached = W.cached_weights()
+    if args.json:
+        _print_json({"cache_dir": str(W.cache_dir()), "weights": [
+            {"name": c.name, "path": str(c.path), "bytes": c.size_bytes, "where": c.where} for c in cached]})
+        return 0
+    print(f"our cache: {W.cache_dir()}")
+    if not cached:
+        print("no weights cached. Fetch with `vggt-slam-pp weights fetch vggt-1b dinov2_vitb14`, or import a "
+              "local file with `vggt-slam-pp weights import PATH --name NAME`.")
+    for c in cached:
+        print(f"{c.name:22s} {c.size_bytes / 1e9:7.2f} GB  {c.where:11s} {c.path}")
+    print(f"known names: {', '.join(W.known_names())}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vggt-slam-pp", description="VGGT-SLAM++ command-line tools.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -178,6 +210,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--depth-scale", type=float, default=5000.0, help="depth PNG units per metre (TUM: 5000)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_synth)
+    w = sub.add_parser("weights", help="list cached weights, fetch official ones, or import a local file",
+                       description="list (default): what is cached; fetch NAME...: download into the cache "
+                                   "(vggt-1b, vggt-1b-commercial, dinov2_vitb14, ...); import PATH --name NAME: "
+                                   "check a local checkpoint strictly and store it as safetensors")
+    w.add_argument("action", nargs="?", choices=("list", "fetch", "import"), default="list")
+    w.add_argument("targets", nargs="*", help="names (fetch) or one path (import)")
+    w.add_argument("--name", default="vggt-1b", help="model the imported file is for (default vggt-1b)")
+    w.add_argument("--json", action="store_true")
+    w.set_defaults(func=cmd_weights)
     return p
 
 
@@ -186,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if args.verbose < 2:  # third-party retry chatter would bury our one-line errors
+        logging.getLogger("huggingface_hub").setLevel(logging.ERROR)
     try:
         return int(args.func(args) or 0)
     except VggtSlamError as exc:

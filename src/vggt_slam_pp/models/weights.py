@@ -24,6 +24,7 @@ import logging
 import os
 import pickle
 import re
+import socket
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -220,6 +221,16 @@ def _offline() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "0").lower() in ("1", "true", "yes")
 
 
+def _reachable(host: str, timeout: float = 3.0) -> bool:
+    """Cheap connectivity probe so that an offline machine fails fast instead of retrying downloads."""
+    try:
+        socket.create_connection((host, 443), timeout=timeout).close()
+        return True
+    except OSError:
+        log.info("%s is not reachable; not downloading", host)
+        return False
+
+
 def _hf_file(repo: str, filename: str, download: bool) -> Path | None:
     try:
         from huggingface_hub import hf_hub_download
@@ -229,7 +240,7 @@ def _hf_file(repo: str, filename: str, download: bool) -> Path | None:
         return Path(hf_hub_download(repo, filename, local_files_only=True))
     except Exception:  # noqa: BLE001 - not cached: any of several hub exceptions
         pass
-    if not download:
+    if not download or not _reachable("huggingface.co"):
         return None
     try:
         log.info("downloading %s/%s from the Hugging Face Hub", repo, filename)
@@ -243,7 +254,7 @@ def _torch_hub_file(relative: str, download: bool) -> Path | None:
     target = Path(torch.hub.get_dir()) / "checkpoints" / Path(relative).name
     if target.is_file():
         return target
-    if not download:
+    if not download or not _reachable("dl.fbaipublicfiles.com"):
         return None
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -304,20 +315,27 @@ def _finish(model: nn.Module, device: str | torch.device) -> nn.Module:
     return model.to(device).eval()
 
 
-def load_vggt(weights: str | Path = "vggt-1b", device: str | torch.device = "cpu",
-              allow_download: bool = True) -> VGGT:
-    """VGGT-1B with official weights from a name (``vggt-1b``, ``vggt-1b-commercial``) or a path."""
+def load_vggt(weights: str | Path = "vggt-1b", config: Mapping | None = None,
+              device: str | torch.device = "cpu", allow_download: bool = True) -> VGGT:
+    """VGGT with weights from a name (``vggt-1b``, ``vggt-1b-commercial``) or a path. ``config`` is the
+    nested configuration of :func:`build_vggt` (default VGGT-1B). Built on ``meta`` and filled from the
+    checkpoint, so the weights are held in memory once."""
     path = resolve_weights(weights, allow_download)
-    model = build_vggt({}, device="meta")
+    model = build_vggt(config or {}, device="meta")
     load_checked(model, adapt_keys(read_state_dict(path), set(model.state_dict())), str(path))
     return _finish(model, device)
 
 
-def load_dinov2(name: str = "dinov2_vitb14", weights: str | Path | None = None,
+def load_dinov2(spec: str | Mapping = "dinov2_vitb14", weights: str | Path | None = None,
                 device: str | torch.device = "cpu", allow_download: bool = True) -> DinoVisionTransformer:
-    """A DINOv2 hub backbone with weights from ``weights`` (path or name) or, by default, ``name``."""
-    path = resolve_weights(weights or name, allow_download)
-    model = build_dinov2(name, device="meta")
+    """A DINOv2 ViT (hub name or config dictionary) with weights from ``weights`` (path or name) or,
+    by default, the hub name's official checkpoint. Hugging Face ``transformers`` naming is converted."""
+    if weights is None:
+        if not isinstance(spec, str):
+            raise WeightsError("a DINOv2 built from a config dictionary needs an explicit weights path")
+        weights = spec
+    path = resolve_weights(weights, allow_download)
+    model = build_dinov2(spec, device="meta")
     load_checked(model, adapt_keys(read_state_dict(path), set(model.state_dict()), (dinov2_from_hf,)), str(path))
     return _finish(model, device)
 

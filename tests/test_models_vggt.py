@@ -30,7 +30,8 @@ TOL = {
 
 
 def _close(ours, ref: torch.Tensor, kind: str) -> None:
-    ours = torch.as_tensor(np.asarray(ours) if not isinstance(ours, torch.Tensor) else ours)
+    ours = torch.as_tensor(np.asarray(ours) if not isinstance(ours, torch.Tensor) else ours).cpu()
+    ref = ref.cpu()
     assert tuple(ours.shape) == tuple(ref.shape), (kind, tuple(ours.shape), tuple(ref.shape))
     mode, tol = TOL[kind]
     diff = (ours.double() - ref.double()).abs()
@@ -176,7 +177,7 @@ def test_config_defaults_are_vggt_1b():
 
 
 def test_bad_input_shapes(track_fixture):
-    model, t = track_fixture
+    model, _ = track_fixture
     with pytest.raises(ModelError, match="multiple of the patch size"):
         model(torch.zeros(2, 3, 50, 84))
     with pytest.raises(ModelError, match=r"\[S,3,H,W\]"):
@@ -228,3 +229,21 @@ def test_pose_encoding_round_trip(rng):
     assert torch.allclose(ext3[..., :3], ext[..., :3].float(), atol=1e-5)
     T = extrinsic_to_T_cam_world(ext)
     assert T.shape == (20, 4, 4) and np.allclose(T[:, 3], [0, 0, 0, 1])
+
+
+def test_importing_the_models_sets_no_global_torch_flags():
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "def flags():\n"
+        "    return (torch.get_default_dtype(), torch.get_num_threads(), torch.backends.cudnn.benchmark,\n"
+        "            torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32,\n"
+        "            torch.get_float32_matmul_precision(), torch.is_grad_enabled())\n"
+        "before = flags()\n"
+        "import vggt_slam_pp.models.weights, vggt_slam_pp.models.runtime, vggt_slam_pp.models.preprocess\n"
+        "import vggt_slam_pp.models.cameras\n"
+        "assert flags() == before, (before, flags())\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

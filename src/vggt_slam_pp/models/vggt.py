@@ -150,7 +150,7 @@ class Aggregator(nn.Module):
 
     def reset_buffers(self) -> None:
         """(Re)create the ImageNet normalisation buffers (not in the checkpoint; needed after a meta build)."""
-        device = "cpu" if self.camera_token.is_meta else self.camera_token.device
+        device = self.camera_token.device
         for name, value in (("_resnet_mean", IMAGENET_MEAN), ("_resnet_std", IMAGENET_STD)):
             self.register_buffer(name, torch.tensor(value, device=device).view(1, 1, 3, 1, 1), persistent=False)
 

@@ -106,7 +106,12 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
 
             obj = load_file(str(path), device="cpu")
         else:
-            obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+            try:  # memory-mapped when the file is in torch's zip format (every recent torch.save)
+                obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+            except RuntimeError as exc:
+                if "mmap" not in str(exc):
+                    raise
+                obj = torch.load(path, map_location="cpu", weights_only=True)
     except (OSError, RuntimeError, ValueError, EOFError, pickle.UnpicklingError, KeyError) as exc:
         raise WeightsError(f"cannot read weights {path} (truncated or not a checkpoint?): "
                            f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from exc

@@ -52,8 +52,8 @@ class AggregatorConfig:
 
 
 def _vitl14_reg() -> DinoV2Config:
-    return dataclasses.replace(hub_config("dinov2_vitl14_reg"), interpolate_antialias=True,
-                               interpolate_offset=0.0)
+    """VGGT's patch embedding: the ``dinov2_vitl14_reg`` layout (antialiased pos-embed resize, offset 0)."""
+    return hub_config("dinov2_vitl14_reg")
 
 
 @dataclass(frozen=True)

@@ -39,3 +39,7 @@ class ModelError(VggtSlamError):
 
 class WeightsError(ModelError):
     """Weights cannot be found, downloaded, read or matched to a model (missing/unexpected keys)."""
+
+
+class FrontendError(VggtSlamError):
+    """The front-end cannot run: too few frames, a backbone failure it cannot degrade around, bad config."""

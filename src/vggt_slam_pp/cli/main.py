@@ -158,6 +158,63 @@ def cmd_weights(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ run
+def cmd_run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from vggt_slam_pp.frontend.frontend import FrontendConfig
+    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
+
+    source = open_source(args.input, layout=args.layout, ground_truth=args.gt, stride=args.stride)
+    if args.max_frames:
+        source = _Truncated(source, args.max_frames)
+    config = RunConfig(
+        backbone=BackboneConfig(name=args.backbone, weights=args.weights, device=args.device,
+                                replay_dir=str(args.replay) if args.replay else None,
+                                noise=args.noise, seed=args.seed),
+        frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=args.tau),
+                                submap_size=args.submap_size),
+        calibrated=args.calibrated, save_predictions=not args.no_save_predictions,
+        backend=not args.no_backend)
+    if config.backend:
+        log.warning("the back-end (loop closure) is not implemented yet; running the front-end only")
+        config = dataclasses.replace(config, backend=False)
+    report = run(source, config, args.out, progress=_progress(len(source), "frames", disable=args.quiet))
+    msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
+           f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
+    if "ate_rmse_odometry" in report:
+        msg += f"; odometry ATE rmse {report['ate_rmse_odometry']:.4f} (Sim(3)-aligned, keyframes)"
+    print(msg)
+    print(f"outputs: {args.out}/ (keyframes_odometry.txt/.kitti, frames_odometry.txt/.kitti, frames.csv, "
+          "report.json, config.json, predictions/)")
+    return 0
+
+
+class _Truncated:
+    """The first ``n`` frames of a source (for quick runs)."""
+
+    def __init__(self, source, n: int) -> None:
+        self._s, self._n = source, min(n, len(source))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i: int):
+        if not 0 <= i < self._n:
+            raise IndexError(i)
+        return self._s[i]
+
+    def frame_ground_truth(self, *a, **k):
+        m = self._s.frame_ground_truth(*a, **k)
+        if m is None:
+            return None
+        idx, gt = m
+        keep = idx < self._n
+        return idx[keep], gt.subset(np.nonzero(keep)[0])
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vggt-slam-pp", description="VGGT-SLAM++ command-line tools.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -210,6 +267,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--depth-scale", type=float, default=5000.0, help="depth PNG units per metre (TUM: 5000)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_synth)
+    r = sub.add_parser("run", help="run the system on an input and write trajectories and a report")
+    r.add_argument("--input", required=True, type=Path, help="image folder, video or dataset folder")
+    r.add_argument("--backbone", choices=("vggt", "simulated", "colmap", "replay"), default="vggt")
+    r.add_argument("--out", required=True, type=Path, help="output folder")
+    r.add_argument("--calibrated", action="store_true",
+                   help="use the dataset's intrinsics and distortion (undistort / known camera)")
+    r.add_argument("--no-backend", action="store_true", help="front-end only (odometry)")
+    r.add_argument("--layout", default="auto", help="input layout (default: detected)")
+    r.add_argument("--gt", type=Path, help="ground-truth trajectory file for evaluation")
+    r.add_argument("--stride", type=int, default=1, help="use every N-th input frame")
+    r.add_argument("--max-frames", type=int, help="stop after this many frames")
+    r.add_argument("--weights", default="vggt-1b", help="vggt: weights name or path (model.pt, .safetensors, folder)")
+    r.add_argument("--device", default="auto", help="vggt: auto, cpu, cuda, cuda:N")
+    r.add_argument("--replay", type=Path, help="replay: folder of an earlier run (or its predictions/)")
+    r.add_argument("--noise", choices=("default", "zero"), default="default", help="simulated: noise model")
+    r.add_argument("--submap-size", type=int, default=32, help="new keyframes per submap (w, default 32)")
+    r.add_argument("--tau", type=float, default=40.0, help="keyframe LK disparity threshold, px (default 40)")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--no-save-predictions", action="store_true", help="do not write predictions/")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_run)
+
     w = sub.add_parser("weights", help="list cached weights, fetch official ones, or import a local file",
                        description="list (default): what is cached; fetch NAME...: download into the cache "
                                    "(vggt-1b, vggt-1b-commercial, dinov2_vitb14, ...); import PATH --name NAME: "

@@ -99,6 +99,35 @@ class Trajectory:
         return Trajectory(self.timestamps, np.asarray(T_new_world) @ self.poses, self.has_timestamps,
                           self.interpolated)
 
+    def interpolate_at(self, query: np.ndarray) -> Trajectory:
+        """Poses at ``query`` times [M]: exact where a time matches, otherwise interpolated between the
+        neighbouring poses (rotation slerp, linear translation, geometric scale for Sim(3) poses) and
+        held constant before the first / after the last pose. ``interpolated`` marks the non-exact ones."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        query = np.asarray(query, dtype=np.float64).reshape(-1)
+        order = np.argsort(self.timestamps, kind="stable")
+        ts, P = self.timestamps[order], self.poses[order]
+        scale = np.cbrt(np.linalg.det(P[:, :3, :3]))
+        R = P[:, :3, :3] / scale[:, None, None]
+        out = np.zeros((len(query), 4, 4))
+        out[:, 3, 3] = 1.0
+        exact = np.zeros(len(query), bool)
+        pos = np.searchsorted(ts, query)
+        for j, (q, i) in enumerate(zip(query, pos, strict=True)):
+            if i < len(ts) and ts[i] == q:
+                out[j], exact[j] = P[i], True
+                continue
+            if i == 0 or i == len(ts):
+                out[j] = P[0] if i == 0 else P[-1]
+                continue
+            a = (q - ts[i - 1]) / (ts[i] - ts[i - 1])
+            rot = Slerp([0.0, 1.0], Rotation.from_matrix(R[i - 1:i + 1]))([a]).as_matrix()[0]
+            s = scale[i - 1] ** (1 - a) * scale[i] ** a
+            out[j, :3, :3] = s * rot
+            out[j, :3, 3] = (1 - a) * P[i - 1, :3, 3] + a * P[i, :3, 3]
+        return Trajectory(query, out, self.has_timestamps, ~exact)
+
     def right_multiplied(self, T_cam_sensor: np.ndarray) -> Trajectory:
         """Poses of a rigidly attached sensor: ``T_world_sensor = T_world_cam @ T_cam_sensor``."""
         return Trajectory(self.timestamps, self.poses @ np.asarray(T_cam_sensor), self.has_timestamps,

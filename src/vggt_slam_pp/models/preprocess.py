@@ -46,11 +46,14 @@ class PreprocessInfo:
         xy = np.asarray(xy, dtype=np.float64)
         return (xy + 0.5 - [self.offset_x, self.offset_y]) / [self.scale_x, self.scale_y] - 0.5
 
+    def to_original_matrix(self) -> np.ndarray:
+        """3x3 affine map of homogeneous network pixels (x, y, 1) to original pixels."""
+        sx, sy, ox, oy = self.scale_x, self.scale_y, self.offset_x, self.offset_y
+        return np.array([[1 / sx, 0, (0.5 - ox) / sx - 0.5], [0, 1 / sy, (0.5 - oy) / sy - 0.5], [0, 0, 1]])
+
     def intrinsics_to_original(self, K: np.ndarray) -> np.ndarray:
         """A 3x3 intrinsic matrix at network resolution -> the same camera in original pixels."""
-        sx, sy, ox, oy = self.scale_x, self.scale_y, self.offset_x, self.offset_y
-        A = np.array([[1 / sx, 0, (0.5 - ox) / sx - 0.5], [0, 1 / sy, (0.5 - oy) / sy - 0.5], [0, 0, 1]])
-        return A @ np.asarray(K, dtype=np.float64)
+        return self.to_original_matrix() @ np.asarray(K, dtype=np.float64)
 
 
 def _to_pil(image) -> Image.Image:

@@ -1,0 +1,112 @@
+"""Saving every submap prediction during a run, and replaying them later without the network.
+
+One safetensors file per submap, ``submap_XXXXX.safetensors``: per-frame observation arrays are
+concatenated with an ``offsets`` array; scalars and the ``info`` dict go into the file's metadata. The
+round trip is bit-identical.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from vggt_slam_pp.errors import FrontendError
+from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.frontend.types import SubmapPrediction
+from vggt_slam_pp.io.frames import Frame
+
+log = logging.getLogger(__name__)
+
+_ARRAYS = ("frame_indices", "T_cam_submap", "intrinsics", "to_original", "valid", "depth", "depth_conf")
+_LISTS = ("points", "conf", "pixels", "keys")
+
+
+def save_prediction(path: str | Path, pred: SubmapPrediction) -> None:
+    """Write ``pred`` to a safetensors file (atomically)."""
+    from safetensors.numpy import save_file
+
+    tensors: dict[str, np.ndarray] = {}
+    for name in _ARRAYS:
+        value = getattr(pred, name)
+        if value is not None:
+            arr = np.ascontiguousarray(value)
+            tensors[name] = arr.astype(np.uint8) if arr.dtype == bool else arr
+    counts = np.array([len(p) for p in pred.points], dtype=np.int64)
+    tensors["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    for name in _LISTS:
+        parts = getattr(pred, name)
+        tensors[name] = np.ascontiguousarray(np.concatenate(parts) if len(parts) else np.zeros(0))
+    meta = {"network_hw": json.dumps(list(pred.network_hw)), "dense": json.dumps(pred.dense),
+            "info": json.dumps(pred.info, default=float), "valid_dtype": "bool"}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+
+
+def load_prediction(path: str | Path) -> SubmapPrediction:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="numpy") as f:
+            meta = f.metadata()
+            t = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no iterator
+    except Exception as exc:  # noqa: BLE001 - safetensors raises its own error type
+        raise FrontendError(f"cannot read saved prediction {path}: {exc}") from exc
+    off = t["offsets"]
+    split = {name: [t[name][off[i]:off[i + 1]] for i in range(len(off) - 1)] for name in _LISTS}
+    return SubmapPrediction(
+        t["frame_indices"], t["T_cam_submap"], t["intrinsics"], tuple(json.loads(meta["network_hw"])),
+        t["to_original"], split["points"], split["conf"], split["pixels"], split["keys"],
+        t["valid"].astype(bool), t.get("depth"), t.get("depth_conf"), json.loads(meta["dense"]),
+        json.loads(meta["info"]))
+
+
+class PredictionStore:
+    """A folder of saved predictions, indexed by the submap's first frame index."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+
+    def path(self, submap_id: int) -> Path:
+        return self.folder / f"submap_{submap_id:05d}.safetensors"
+
+    def save(self, submap_id: int, pred: SubmapPrediction) -> None:
+        save_prediction(self.path(submap_id), pred)
+
+    def all(self) -> list[Path]:
+        return sorted(self.folder.glob("submap_*.safetensors"))
+
+
+class ReplayBackbone(Backbone):
+    """Returns the saved prediction whose frame indices equal the requested keyframes."""
+
+    name = "replay"
+
+    def __init__(self, folder: str | Path) -> None:
+        store = PredictionStore(folder)
+        files = store.all()
+        if not files:
+            raise FrontendError(f"no saved predictions (submap_*.safetensors) in {folder}")
+        self._by_frames: dict[tuple[int, ...], Path] = {}
+        for p in files:
+            from safetensors import safe_open
+
+            with safe_open(str(p), framework="numpy") as f:
+                self._by_frames[tuple(int(i) for i in f.get_tensor("frame_indices"))] = p
+        first = load_prediction(files[0])
+        self.dense = first.dense
+
+    def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
+        key = tuple(int(f.index) for f in frames)
+        path = self._by_frames.get(key)
+        if path is None:
+            raise FrontendError(f"replay: no saved prediction for keyframes {key[0]}..{key[-1]} ({len(key)} "
+                                "frames); replay needs the same input, stride and keyframe settings as the "
+                                "recorded run")
+        return load_prediction(path)

@@ -1,0 +1,84 @@
+"""Keyframe selection by Lucas-Kanade mean disparity (SPEC 3.2).
+
+A frame becomes a keyframe when the mean displacement of corners tracked from the last keyframe
+exceeds ``tau_disparity`` pixels (original resolution), or when fewer than ``min_tracked`` corners
+survive tracking (textureless or blurred frames, cuts). The first frame is always a keyframe.
+Corners: Shi-Tomasi, up to 1000, quality 0.01, min distance 8; pyramidal LK 21x21, 3 levels.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    tau_disparity: float = 40.0
+    max_corners: int = 1000
+    quality_level: float = 0.01
+    min_distance: float = 8.0
+    lk_window: int = 21
+    lk_levels: int = 3
+    min_tracked: int = 10
+
+
+@dataclass(frozen=True)
+class KeyframeDecision:
+    is_keyframe: bool
+    disparity: float  # mean LK displacement from the last keyframe, px (nan when not tracked)
+    tracked: int  # corners tracked from the last keyframe
+    reason: str  # "first", "disparity", "tracking-lost", "" (not a keyframe)
+
+
+class KeyframeSelector:
+    """Stateful selector: feed frames in order with :meth:`update`."""
+
+    def __init__(self, config: KeyframeConfig | None = None) -> None:
+        self.config = config or KeyframeConfig()
+        self._ref_gray: np.ndarray | None = None
+        self._ref_pts: np.ndarray | None = None
+
+    def _corners(self, gray: np.ndarray) -> np.ndarray | None:
+        c = self.config
+        pts = cv2.goodFeaturesToTrack(gray, maxCorners=c.max_corners, qualityLevel=c.quality_level,
+                                      minDistance=c.min_distance)
+        return pts if pts is not None and len(pts) else None
+
+    def _set_reference(self, gray: np.ndarray) -> None:
+        self._ref_gray = gray
+        self._ref_pts = self._corners(gray)
+
+    def update(self, image: np.ndarray) -> KeyframeDecision:
+        """``image`` RGB uint8 [H,W,3] (or gray [H,W]) -> decision; a keyframe becomes the new reference."""
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        if self._ref_gray is None:
+            self._set_reference(gray)
+            return KeyframeDecision(True, float("nan"), 0, "first")
+        if self._ref_gray.shape != gray.shape:
+            log.warning("frame size changed from %s to %s: forcing a keyframe", self._ref_gray.shape, gray.shape)
+            self._set_reference(gray)
+            return KeyframeDecision(True, float("nan"), 0, "tracking-lost")
+        c = self.config
+        tracked, disparity = 0, float("nan")
+        if self._ref_pts is not None:
+            nxt, status, _ = cv2.calcOpticalFlowPyrLK(
+                self._ref_gray, gray, self._ref_pts, None, winSize=(c.lk_window, c.lk_window),
+                maxLevel=c.lk_levels - 1)
+            ok = status.reshape(-1).astype(bool) if status is not None else np.zeros(0, bool)
+            tracked = int(ok.sum())
+            if tracked:
+                d = np.linalg.norm((nxt - self._ref_pts).reshape(-1, 2)[ok], axis=1)
+                disparity = float(d.mean())
+        if tracked < c.min_tracked:
+            self._set_reference(gray)
+            return KeyframeDecision(True, disparity, tracked, "tracking-lost")
+        if disparity > c.tau_disparity:
+            self._set_reference(gray)
+            return KeyframeDecision(True, disparity, tracked, "disparity")
+        return KeyframeDecision(False, disparity, tracked, "")

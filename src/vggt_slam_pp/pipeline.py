@@ -1,0 +1,220 @@
+"""The facade: run the system on a frame source and write its outputs.
+
+``run(source, config, out_dir)`` runs the front-end (the back-end joins in a later milestone) and
+writes, atomically, into ``out_dir``:
+
+* ``keyframes_odometry.txt`` / ``.kitti``: keyframe poses (TUM with timestamps, 12-column KITTI);
+* ``frames_odometry.txt`` / ``.kitti``: every input frame, non-keyframes interpolated in time;
+* ``frames.csv``: ``index,timestamp,keyframe,interpolated,disparity_px,tracked,reason`` per frame;
+* ``config.json``: the resolved configuration; ``report.json``: counts, per-stage timings, throughput,
+  peak memory, odometry edges and, with ground truth, ``ate_rmse_odometry`` (Sim(3)-aligned, keyframes);
+* ``predictions/``: every submap's raw prediction (safetensors), replayable with ``--backbone replay``.
+
+If the run fails part-way (a :class:`VggtSlamError`), the outputs of the submaps finished so far are
+still written, with the error in ``report.json``, and the error is re-raised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import resource
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vggt_slam_pp import __version__
+from vggt_slam_pp.errors import EvaluationError, FrontendError, VggtSlamError
+from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
+from vggt_slam_pp.io.frames import FrameSource
+from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
+
+log = logging.getLogger(__name__)
+
+BACKBONES = ("vggt", "simulated", "colmap", "replay")
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    name: str = "simulated"
+    weights: str = "vggt-1b"  # vggt: name or path
+    device: str = "auto"
+    stride: int = 2  # dense backbones: pixel stride of the point grid
+    replay_dir: str | None = None
+    noise: str = "default"  # simulated: "default" or "zero"
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    calibrated: bool = False
+    save_predictions: bool = True
+    backend: bool = False  # the back-end is a later milestone
+
+
+def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
+    """Instantiate the configured backbone for ``source``."""
+    b = config.backbone
+    if b.name == "simulated":
+        from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
+
+        matched = source.frame_ground_truth()
+        if matched is None:
+            raise FrontendError("the simulated backbone needs ground truth (a synthetic sequence from `synth`)")
+        idx, gt = matched
+        noise = SimulatedNoise.zero(b.seed) if b.noise == "zero" else dataclasses.replace(SimulatedNoise(), seed=b.seed)
+        return SimulatedBackbone(dict(zip((int(i) for i in idx), gt.poses, strict=True)), noise,
+                                 stride=max(b.stride, 1) * 2)
+    if b.name == "vggt":
+        from vggt_slam_pp.frontend.backbones.vggt import VggtBackbone
+
+        return VggtBackbone(b.weights, device=b.device, stride=b.stride)
+    if b.name == "colmap":
+        from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+
+        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed)
+    if b.name == "replay":
+        from vggt_slam_pp.frontend.backbones.replay import ReplayBackbone
+
+        if not b.replay_dir:
+            raise FrontendError("the replay backbone needs the folder of a previous run (--replay DIR)")
+        folder = Path(b.replay_dir)
+        return ReplayBackbone(folder / "predictions" if (folder / "predictions").is_dir() else folder)
+    raise FrontendError(f"unknown backbone {b.name!r}; choose one of {', '.join(BACKBONES)}")
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
+        progress: Callable[[int, int], None] | None = None) -> dict:
+    """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
+    t0 = time.perf_counter()
+    backbone = backbone or make_backbone(config, source)
+    store = None
+    if config.save_predictions and config.backbone.name != "replay":
+        from vggt_slam_pp.frontend.backbones.replay import PredictionStore
+
+        store = PredictionStore(out / "predictions")
+    frontend = Frontend(backbone, config.frontend, store=store)
+    n = len(source)
+    error: VggtSlamError | None = None
+    t_read = 0.0
+    try:
+        for i in range(n):
+            t = time.perf_counter()
+            frame = source[i]
+            if config.calibrated and frame.intrinsics is not None and frame.intrinsics.dist is not None \
+                    and backbone.name != "colmap":
+                frame = _undistorted(frame)
+            t_read += time.perf_counter() - t
+            frontend.process(frame)
+            if progress:
+                progress(i + 1, n)
+        result = frontend.finish()
+    except VggtSlamError as exc:
+        error = exc
+        log.error("run failed: %s; writing the outputs of %d finished submaps", exc, len(frontend.submaps))
+        result = FrontendResult(frontend.submaps, frontend.edges, _chain(frontend), frontend.decisions,
+                                dict(frontend.timings)) if frontend.submaps else None
+    finally:
+        backbone.close()
+    total = time.perf_counter() - t0
+    report = _report(source, config, result, total, t_read, error)
+    if result is not None:
+        _write_trajectories(out, result)
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    if error is not None:
+        raise error
+    return report
+
+
+def _chain(frontend: Frontend) -> list[np.ndarray]:
+    from vggt_slam_pp.frontend.odometry import chain
+
+    return chain(frontend.edges)
+
+
+def _undistorted(frame):
+    cam = frame.intrinsics
+    image = cam.undistort_image(frame.image)
+    return dataclasses.replace(frame, image=image, intrinsics=cam.without_distortion(),
+                               depth=None if frame.depth is None else cam.undistort_image(frame.depth))
+
+
+def _write_trajectories(out: Path, result: FrontendResult) -> None:
+    kf = result.keyframe_trajectory()
+    write_tum(out / "keyframes_odometry.txt", kf)
+    write_kitti(out / "keyframes_odometry.kitti", kf)
+    allf = result.all_frame_trajectory()
+    write_tum(out / "frames_odometry.txt", allf)
+    write_kitti(out / "frames_odometry.kitti", allf)
+    lines = ["index,timestamp,keyframe,interpolated,disparity_px,tracked,reason"]
+    for (idx, ts, d), interp in zip(result.decisions, allf.interpolated, strict=True):
+        lines.append(f"{idx},{ts:.9f},{int(d.is_keyframe)},{int(interp)},{d.disparity:.3f},{d.tracked},{d.reason}")
+    atomic_write_text(out / "frames.csv", "\n".join(lines) + "\n")
+
+
+def _ate(gt_pair, est: Trajectory) -> dict:
+    from vggt_slam_pp.eval import compute_ate
+
+    _, gt = gt_pair
+    try:
+        ate = compute_ate(gt, est, "sim3")
+    except (EvaluationError, VggtSlamError) as exc:
+        log.warning("ATE not computed: %s", exc)
+        return {}
+    return {"rmse": ate.rmse, "n": ate.n_matched, "scale": ate.scale}
+
+
+def _report(source: FrameSource, config: RunConfig, result: FrontendResult | None, total: float,
+            t_read: float, error: VggtSlamError | None) -> dict:
+    report: dict = {"version": __version__, "backbone": config.backbone.name, "calibrated": config.calibrated,
+                    "frames": len(source), "seconds_total": total, "peak_memory_mb": _peak_rss_mb(),
+                    "error": str(error) if error else None}
+    if result is None:
+        return report
+    kf = result.keyframe_trajectory()
+    timings = {"read_s": t_read, **result.timings}
+    report.update({
+        "frames_processed": len(result.decisions), "keyframes": len(kf), "submaps": len(result.submaps),
+        "fps": len(result.decisions) / total if total > 0 else None,
+        "timings": timings,
+        "path_length_odometry": kf.path_length(),
+        "edges": [{"prev": e.prev, "curr": e.curr, "method": e.method, "residual": e.residual,
+                   "inlier_ratio": e.inlier_ratio, "correspondences": e.num_correspondences,
+                   "degraded": e.degraded} for e in result.edges],
+        "invalid_frames": [int(i) for sm in result.submaps for i, v in
+                           zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
+        "points_per_submap": [sm.prediction.num_points() for sm in result.submaps],
+    })
+    gt_pair = source.frame_ground_truth()
+    if gt_pair is not None:
+        ate = _ate(gt_pair, kf)
+        if ate:
+            report["ate_rmse_odometry"] = ate["rmse"]
+            report["ate_odometry"] = ate
+            report["gt_path_length"] = gt_pair[1].path_length()
+        ate_all = _ate(gt_pair, result.all_frame_trajectory())
+        if ate_all:
+            report["ate_rmse_odometry_all_frames"] = ate_all["rmse"]
+    return report
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)

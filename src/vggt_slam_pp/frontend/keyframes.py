@@ -4,6 +4,8 @@ A frame becomes a keyframe when the mean displacement of corners tracked from th
 exceeds ``tau_disparity`` pixels (original resolution), or when fewer than ``min_tracked`` corners
 survive tracking (textureless or blurred frames, cuts). The first frame is always a keyframe.
 Corners: Shi-Tomasi, up to 1000, quality 0.01, min distance 8; pyramidal LK 21x21, 3 levels.
+A corner counts as tracked only if tracking it back lands within ``max_fb_error`` px of where it
+started (forward-backward check): LK alone reports "found" on textureless frames.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class KeyframeConfig:
     lk_window: int = 21
     lk_levels: int = 3
     min_tracked: int = 10
+    max_fb_error: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -67,10 +70,11 @@ class KeyframeSelector:
         c = self.config
         tracked, disparity = 0, float("nan")
         if self._ref_pts is not None:
-            nxt, status, _ = cv2.calcOpticalFlowPyrLK(
-                self._ref_gray, gray, self._ref_pts, None, winSize=(c.lk_window, c.lk_window),
-                maxLevel=c.lk_levels - 1)
-            ok = status.reshape(-1).astype(bool) if status is not None else np.zeros(0, bool)
+            lk = dict(winSize=(c.lk_window, c.lk_window), maxLevel=c.lk_levels - 1)
+            nxt, status, _ = cv2.calcOpticalFlowPyrLK(self._ref_gray, gray, self._ref_pts, None, **lk)
+            back, status_b, _ = cv2.calcOpticalFlowPyrLK(gray, self._ref_gray, nxt, None, **lk)
+            fb = np.linalg.norm((back - self._ref_pts).reshape(-1, 2), axis=1)
+            ok = status.reshape(-1).astype(bool) & status_b.reshape(-1).astype(bool) & (fb < c.max_fb_error)
             tracked = int(ok.sum())
             if tracked:
                 d = np.linalg.norm((nxt - self._ref_pts).reshape(-1, 2)[ok], axis=1)

@@ -41,7 +41,7 @@ class OdometryConfig:
 def overlap_correspondences(prev: SubmapPrediction, curr: SubmapPrediction) -> tuple[np.ndarray, np.ndarray]:
     """Points of the overlap frame in (prev submap, curr submap) coordinates, paired by key: [M,3] x 2."""
     kp, kc = prev.keys[-1], curr.keys[0]
-    common, ip, ic = np.intersect1d(kp, kc, assume_unique=False, return_indices=True)
+    _, ip, ic = np.intersect1d(kp, kc, assume_unique=False, return_indices=True)
     return prev.points[-1][ip], curr.points[0][ic]
 
 

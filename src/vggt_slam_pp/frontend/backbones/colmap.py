@@ -1,0 +1,202 @@
+"""Weight-free CPU backbone: per-submap structure-from-motion with pycolmap.
+
+For each submap the keyframes are written to a temporary folder, SIFT features are extracted (one
+shared camera), matched sequentially, and reconstructed by COLMAP's incremental mapper.
+
+* Uncalibrated (default): a shared ``OPENCV`` camera whose intrinsics and distortion are estimated
+  (``SIMPLE_RADIAL`` fails on the EuRoC lens, SPEC 3.3).
+* Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
+
+The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there). Observations are the
+triangulated keypoints of each image: ``keys`` are SIFT keypoint indices, identical for the same image
+in two submaps, so the overlap frame links submaps (odometry method ``pose_scale``). Confidence per
+point: ``track_length / (1 + reprojection error)``.
+
+Failures degrade instead of raising: when the mapper does not initialise, it is retried with a lower
+initial triangulation angle (16 -> 4 -> 2 degrees) and fewer required inliers; frames left unregistered
+are marked ``valid=False`` with the nearest registered neighbour's pose, and a submap that cannot be
+reconstructed at all is returned with every frame invalid (identity poses, no points), which the
+odometry then reports as a degraded edge.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.frontend.types import SubmapPrediction
+from vggt_slam_pp.geometry.lie import se3_inverse
+from vggt_slam_pp.io.frames import Frame
+
+log = logging.getLogger(__name__)
+
+INIT_ANGLES = (16.0, 4.0, 2.0)
+
+
+class ColmapBackbone(Backbone):
+    name = "colmap"
+    dense = False
+
+    def __init__(self, calibrated: bool = False, max_features: int = 4096, overlap: int = 10,
+                 num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None) -> None:
+        import pycolmap  # noqa: F401 - fail early with a clear import error
+
+        self.calibrated = calibrated
+        self.max_features = max_features
+        self.overlap = overlap
+        self.num_threads = num_threads
+        self.seed = seed
+        self.keep_workdir = Path(keep_workdir) if keep_workdir else None
+        self._count = 0
+
+    # -- COLMAP steps ---------------------------------------------------------------------------
+    def _camera_options(self, frame: Frame):
+        import pycolmap
+
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "OPENCV"
+        if self.calibrated and frame.intrinsics is not None:
+            cam = frame.intrinsics
+            dist = list(cam.dist[:4]) if cam.dist is not None else [0.0, 0.0, 0.0, 0.0]
+            dist += [0.0] * (4 - len(dist))
+            reader.camera_params = ",".join(str(float(v)) for v in [cam.fx, cam.fy, cam.cx, cam.cy, *dist])
+        return reader
+
+    def _reconstruct(self, work: Path, frames: Sequence[Frame]):
+        import pycolmap
+
+        images = work / "images"
+        images.mkdir(parents=True)
+        names = [f"{i:04d}.png" for i in range(len(frames))]
+        for name, f in zip(names, frames, strict=True):
+            cv2.imwrite(str(images / name), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+        db = work / "database.db"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.use_gpu = False
+        extraction.num_threads = self.num_threads
+        extraction.sift.max_num_features = self.max_features
+        pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=self._camera_options(frames[0]),
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.use_gpu = False
+        matching.num_threads = self.num_threads
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = self.overlap
+        pairing.loop_detection = False
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+        best = None
+        for attempt, angle in enumerate(INIT_ANGLES):
+            opts = pycolmap.IncrementalPipelineOptions()
+            opts.num_threads = self.num_threads
+            opts.random_seed = self.seed
+            opts.multiple_models = False
+            opts.mapper.init_min_tri_angle = angle
+            if attempt:
+                opts.mapper.init_min_num_inliers = 50
+                opts.min_model_size = 3
+            if self.calibrated and frames[0].intrinsics is not None:
+                opts.ba_refine_focal_length = False
+                opts.ba_refine_principal_point = False
+                opts.ba_refine_extra_params = False
+            out = work / f"sparse{attempt}"
+            out.mkdir()
+            try:
+                recs = pycolmap.incremental_mapping(db, images, out, options=opts)
+            except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+                log.warning("colmap mapping attempt %d failed: %s", attempt, exc)
+                recs = {}
+            if recs:
+                rec = max(recs.values(), key=lambda r: r.num_reg_images())
+                if best is None or rec.num_reg_images() > best.num_reg_images():
+                    best = rec
+                if rec.num_reg_images() == len(frames):
+                    break
+            log.info("colmap: %d/%d images registered with init angle %.0f deg; retrying with a lower angle",
+                     0 if not recs else best.num_reg_images(), len(frames), angle)
+        return best, names
+
+    # -- conversion -----------------------------------------------------------------------------
+    def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
+        S = len(frames)
+        work = Path(tempfile.mkdtemp(prefix="vggt_slam_colmap_"))
+        self._count += 1
+        try:
+            rec, names = self._reconstruct(work, frames) if S >= 2 else (None, [])
+            return self._to_prediction(rec, names, frames)
+        finally:
+            if self.keep_workdir is not None:
+                shutil.copytree(work, self.keep_workdir / f"submap_{self._count:05d}", dirs_exist_ok=True)
+            shutil.rmtree(work, ignore_errors=True)
+
+    def _to_prediction(self, rec, names: list[str], frames: Sequence[Frame]) -> SubmapPrediction:
+        S = len(frames)
+        h, w = frames[0].height, frames[0].width
+        indices = np.array([f.index for f in frames])
+        empty_pts = [np.zeros((0, 3), np.float32) for _ in range(S)]
+        empty = dict(points=empty_pts, conf=[np.zeros(0, np.float32) for _ in range(S)],
+                     pixels=[np.zeros((0, 2), np.float32) for _ in range(S)],
+                     keys=[np.zeros(0, np.int64) for _ in range(S)])
+        eye = np.repeat(np.eye(3)[None], S, 0)
+        if rec is None or rec.num_reg_images() == 0:
+            log.warning("colmap: submap with frames %d..%d could not be reconstructed; all frames invalid",
+                        indices[0], indices[-1])
+            return SubmapPrediction(indices, np.repeat(np.eye(4)[None], S, 0), eye.copy(), (h, w), eye,
+                                    valid=np.zeros(S, bool), dense=False, info={"registered": 0}, **empty)
+        by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+        T_cam_world = np.full((S, 4, 4), np.nan)
+        Ks = np.zeros((S, 3, 3))
+        valid = np.zeros(S, bool)
+        for i, name in enumerate(names):
+            img = by_name.get(name)
+            if img is None:
+                continue
+            T_cam_world[i] = np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]])
+            Ks[i] = rec.cameras[img.camera_id].calibration_matrix()
+            valid[i] = True
+        ref = int(np.argmax(valid))  # frame 0 when registered
+        if not valid[0]:
+            log.warning("colmap: the submap's first frame %d is not registered; its pose is a guess", indices[0])
+        T_world_ref = se3_inverse(T_cam_world[ref])
+        T_cam_submap = T_cam_world @ T_world_ref
+        for i in range(S):  # unregistered frames hold the nearest registered neighbour's pose
+            if not valid[i]:
+                j = int(np.argmin(np.where(valid, np.abs(np.arange(S) - i), S + 1)))
+                T_cam_submap[i], Ks[i] = T_cam_submap[j], Ks[j]
+        T_submap_world = se3_inverse(T_world_ref)
+        pts, conf, pix, keys = [], [], [], []
+        for i, name in enumerate(names):
+            img = by_name.get(name)
+            if img is None:
+                pts.append(empty["points"][i])
+                conf.append(empty["conf"][i])
+                pix.append(empty["pixels"][i])
+                keys.append(empty["keys"][i])
+                continue
+            idx = np.asarray(img.get_observation_point2D_idxs(), dtype=np.int64)
+            p, c, x = [], [], []
+            for k in idx:
+                p2 = img.point2D(int(k))
+                p3 = rec.point3D(p2.point3D_id)
+                p.append(p3.xyz)
+                c.append(p3.track.length() / (1.0 + p3.error))
+                x.append(p2.xy)
+            P = np.array(p, dtype=np.float64).reshape(-1, 3)
+            pts.append((P @ T_submap_world[:3, :3].T + T_submap_world[:3, 3]).astype(np.float32))
+            conf.append(np.array(c, np.float32))
+            pix.append(np.array(x, np.float32).reshape(-1, 2))
+            keys.append(idx)
+        registered = int(valid.sum())
+        if registered < S:
+            log.warning("colmap: %d of %d frames registered in submap %d..%d", registered, S, indices[0], indices[-1])
+        return SubmapPrediction(indices, T_cam_submap, Ks, (h, w), eye, pts, conf, pix, keys, valid, dense=False,
+                                info={"registered": registered, "points3D": rec.num_points3D(),
+                                      "mean_reprojection_error": rec.compute_mean_reprojection_error()})

@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 import pytest
 
 from vggt_slam_pp.errors import FrontendError
 from vggt_slam_pp.frontend.backbones.base import Backbone
-from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ReplayBackbone, load_prediction, save_prediction
+from vggt_slam_pp.frontend.backbones.replay import (
+    PredictionStore,
+    ReplayBackbone,
+    load_prediction,
+    save_prediction,
+)
 from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
-from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, SubmapAssembler
+from vggt_slam_pp.frontend.frontend import FrontendConfig, SubmapAssembler
 from vggt_slam_pp.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from vggt_slam_pp.frontend.odometry import OdometryConfig, chain, estimate_edge
 from vggt_slam_pp.frontend.types import SubmapPrediction
@@ -101,7 +105,6 @@ def _prediction(rng, T_cam_submap, n=400, outliers=0.0, scale=1.0, frame_indices
 
 
 def test_sim3_odometry_recovers_known_transform_with_outliers(rng):
-    from conftest import random_sim3
 
     from vggt_slam_pp.geometry import se3_exp
 
@@ -184,7 +187,6 @@ def test_simulated_zero_noise_reproduces_ground_truth(tmp_path, loop_sequence):
 
 
 def test_simulated_default_noise_drifts_with_distance(tmp_path, loop_sequence):
-    from vggt_slam_pp.geometry import umeyama
     from vggt_slam_pp.io.trajectory import read_tum
 
     report = _run(loop_sequence, tmp_path / "noisy", noise="default")
@@ -193,11 +195,14 @@ def test_simulated_default_noise_drifts_with_distance(tmp_path, loop_sequence):
     assert report["ate_rmse_odometry"] > 1e-3
     # anchored on the first keyframes, the error grows with the distance travelled (on this loop it
     # shrinks again near the end, where the rotated trajectory passes close to its start)
-    T = umeyama(est.positions[:5], gt.positions[:5], with_scale=True)
-    err = np.linalg.norm(transform_points(T, est.positions) - gt.positions, axis=1)
+    R0 = gt.poses[0, :3, :3] @ est.poses[0, :3, :3].T  # anchor: first pose, scale of the first steps
+    s = gt.subset(np.arange(5)).path_length() / est.subset(np.arange(5)).path_length()
+    aligned = (est.positions - est.positions[0]) @ R0.T * s + gt.positions[0]
+    err = np.linalg.norm(aligned - gt.positions, axis=1)
     q = len(err) // 4
     assert err[q:2 * q].mean() > 5 * err[:5].mean()
-    assert np.all(np.diff(err[4:q]) > 0)  # increasing over the first quarter
+    travelled = np.r_[0, np.cumsum(np.linalg.norm(np.diff(gt.positions, axis=0), axis=1))]
+    assert np.corrcoef(travelled[:2 * q], err[:2 * q])[0, 1] > 0.7  # grows with distance (first half)
 
 
 class _Broken(Backbone):

@@ -33,8 +33,8 @@ def filter_points(pred: SubmapPrediction, config: FilterConfig | None = None) ->
         else -np.inf
     keep_lists = []
     for i in range(pred.num_frames):
-        dist = np.linalg.norm(pred.camera_points(i), axis=1) if len(pred.points[i]) else np.zeros(0)
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):
+            dist = np.linalg.norm(pred.camera_points(i), axis=1) if len(pred.points[i]) else np.zeros(0)
             keep = finite[i] & (pred.conf[i] >= threshold) & (dist >= c.d_min) & (dist <= c.d_max)
         keep_lists.append(keep)
     kept = int(sum(k.sum() for k in keep_lists))

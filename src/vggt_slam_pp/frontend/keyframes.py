@@ -4,8 +4,9 @@ A frame becomes a keyframe when the mean displacement of corners tracked from th
 exceeds ``tau_disparity`` pixels (original resolution), or when fewer than ``min_tracked`` corners
 survive tracking (textureless or blurred frames, cuts). The first frame is always a keyframe.
 Corners: Shi-Tomasi, up to 1000, quality 0.01, min distance 8; pyramidal LK 21x21, 3 levels.
-A corner counts as tracked only if tracking it back lands within ``max_fb_error`` px of where it
-started (forward-backward check): LK alone reports "found" on textureless frames.
+The disparity is the mean over the corners LK reports found (as in the paper). Whether tracking is
+lost is decided on corners that also pass a forward-backward check (tracked back to within
+``max_fb_error`` px of where they started), because LK alone reports "found" on textureless frames.
 """
 
 from __future__ import annotations
@@ -74,10 +75,10 @@ class KeyframeSelector:
             nxt, status, _ = cv2.calcOpticalFlowPyrLK(self._ref_gray, gray, self._ref_pts, None, **lk)
             back, status_b, _ = cv2.calcOpticalFlowPyrLK(gray, self._ref_gray, nxt, None, **lk)
             fb = np.linalg.norm((back - self._ref_pts).reshape(-1, 2), axis=1)
-            ok = status.reshape(-1).astype(bool) & status_b.reshape(-1).astype(bool) & (fb < c.max_fb_error)
-            tracked = int(ok.sum())
-            if tracked:
-                d = np.linalg.norm((nxt - self._ref_pts).reshape(-1, 2)[ok], axis=1)
+            found = status.reshape(-1).astype(bool)
+            tracked = int((found & status_b.reshape(-1).astype(bool) & (fb < c.max_fb_error)).sum())
+            if found.any():
+                d = np.linalg.norm((nxt - self._ref_pts).reshape(-1, 2)[found], axis=1)
                 disparity = float(d.mean())
         if tracked < c.min_tracked:
             self._set_reference(gray)

@@ -120,3 +120,26 @@ def test_weights_command_offline(tmp_path, monkeypatch, capsys):
     _one_line_error(*_run(capsys, "weights", "import", bad, "--name", "dinov2_vits14"), "missing keys")
     code, out, _ = _run(capsys, "weights")
     assert code == 0 and "no weights cached" in out
+
+
+def test_run_command_simulated_and_bad_input(tmp_path, capsys):
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    seq = tmp_path / "seq"
+    write_sequence(make_scene("figure8", frames=40, width=160, height=120, seed=1), seq)
+    code, out, _ = _run(capsys, "run", "--input", seq, "--backbone", "simulated", "--noise", "zero",
+                        "--out", tmp_path / "out", "--tau", "10", "--submap-size", "4", "-q", "--no-backend")
+    assert code == 0 and "odometry ATE rmse" in out
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["frames"] == 40 and report["submaps"] >= 2 and report["ate_rmse_odometry"] < 1e-6
+    assert {"keyframes_s", "backbone_s", "odometry_s"} <= set(report["timings"]) and report["peak_memory_mb"] > 0
+    assert json.loads((tmp_path / "out" / "config.json").read_text())["frontend"]["submap_size"] == 4
+    # replay the recorded predictions
+    code, out, _ = _run(capsys, "run", "--input", seq, "--backbone", "replay", "--replay", tmp_path / "out",
+                        "--out", tmp_path / "replayed", "--tau", "10", "--submap-size", "4", "-q", "--no-backend")
+    assert code == 0
+    # bad inputs: one-line errors
+    _one_line_error(*_run(capsys, "run", "--input", tmp_path / "missing", "--backbone", "simulated",
+                          "--out", tmp_path / "x", "-q"), "missing")
+    _one_line_error(*_run(capsys, "run", "--input", seq, "--backbone", "replay", "--out", tmp_path / "y", "-q"),
+                    "--replay")

@@ -114,7 +114,7 @@ class Frontend:
 
     def finish(self) -> FrontendResult:
         frames = self.assembler.flush()
-        if frames and not (len(frames) == 1 and self.submaps):
+        if frames:
             self._build(frames)
         if not self.submaps:
             raise FrontendError("no frames were processed")

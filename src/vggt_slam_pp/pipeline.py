@@ -47,6 +47,7 @@ class BackboneConfig:
     stride: int = 2  # dense backbones: pixel stride of the point grid
     replay_dir: str | None = None
     noise: str = "default"  # simulated: "default" or "zero"
+    colmap_matcher: str = "exhaustive"  # colmap: "exhaustive" (all pairs in a submap) or "sequential"
     seed: int = 0
 
 
@@ -79,7 +80,7 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
     if b.name == "colmap":
         from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
 
-        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed)
+        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher)
     if b.name == "replay":
         from vggt_slam_pp.frontend.backbones.replay import ReplayBackbone
 

@@ -173,7 +173,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = RunConfig(
         backbone=BackboneConfig(name=args.backbone, weights=args.weights, device=args.device,
                                 replay_dir=str(args.replay) if args.replay else None,
-                                noise=args.noise, seed=args.seed),
+                                noise=args.noise, seed=args.seed, colmap_matcher=args.matcher),
         frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=args.tau),
                                 submap_size=args.submap_size),
         calibrated=args.calibrated, save_predictions=not args.no_save_predictions,
@@ -282,6 +282,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default="auto", help="vggt: auto, cpu, cuda, cuda:N")
     r.add_argument("--replay", type=Path, help="replay: folder of an earlier run (or its predictions/)")
     r.add_argument("--noise", choices=("default", "zero"), default="default", help="simulated: noise model")
+    r.add_argument("--matcher", choices=("exhaustive", "sequential"), default="exhaustive",
+                   help="colmap: match all keyframe pairs of a submap (default) or sequentially")
     r.add_argument("--submap-size", type=int, default=32, help="new keyframes per submap (w, default 32)")
     r.add_argument("--tau", type=float, default=40.0, help="keyframe LK disparity threshold, px (default 40)")
     r.add_argument("--seed", type=int, default=0)

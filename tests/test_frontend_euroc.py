@@ -1,0 +1,21 @@
+"""The COLMAP front-end on real images (EuRoC MH_05 excerpt) meets the odometry ATE targets.
+
+Slow (about a minute per run on 2 cores): ``python -m pytest -m slow tests/test_frontend_euroc.py``.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from vggt_slam_pp.io import open_source
+from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("calibrated", "target"), [(False, 0.08), (True, 0.05)])
+def test_euroc_colmap_odometry_ate(shared_data, tmp_path, calibrated, target):
+    source = open_source(shared_data / "euroc_mh05_sample")
+    report = run(source, RunConfig(backbone=BackboneConfig(name="colmap"), calibrated=calibrated), tmp_path)
+    assert report["error"] is None and report["frames_processed"] == 585
+    assert not any(e["degraded"] for e in report["edges"])
+    assert report["ate_rmse_odometry"] <= target, report["ate_rmse_odometry"]

@@ -309,3 +309,10 @@ def test_colmap_failure_is_an_invalid_submap_not_a_crash():
     frames = [Frame(i, float(i), np.zeros((48, 64, 3), np.uint8)) for i in range(3)]
     pred = ColmapBackbone().predict(frames)  # black frames: no features, no reconstruction
     assert not pred.valid.any() and pred.num_points() == 0 and pred.num_frames == 3
+
+
+def test_fewer_frames_than_one_submap(tmp_path, loop_sequence):
+    few = FrontendConfig(keyframes=KeyframeConfig(tau_disparity=12.0), submap_size=200)
+    report = _run(loop_sequence, tmp_path / "few", frontend=few)
+    assert report["submaps"] == 1 and report["edges"] == [] and report["error"] is None
+    assert 2 <= report["keyframes"] < 200 and report["ate_rmse_odometry"] < 1e-6 * report["gt_path_length"]

@@ -43,3 +43,11 @@ class WeightsError(ModelError):
 
 class FrontendError(VggtSlamError):
     """The front-end cannot run: too few frames, a backbone failure it cannot degrade around, bad config."""
+
+
+class DemError(VggtSlamError):
+    """A DEM cannot be built: too few points for a ground plane, an empty layer, bad grid parameters."""
+
+
+class RetrievalError(VggtSlamError):
+    """Descriptors or the tile index cannot be used: wrong dimension, an index from another configuration."""

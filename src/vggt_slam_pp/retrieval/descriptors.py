@@ -76,7 +76,7 @@ def aggregate(features: np.ndarray, weights: np.ndarray, cells_per_tile: int = 2
     Returns:
         (descriptors [Tr, Tc, D] L2-normalised, support [Tr, Tc] = sum_j w_j m_j; 0 where undefined).
     """
-    rows, cols, D = features.shape
+    rows, cols, _ = features.shape
     if weights.shape != (rows, cols):
         raise RetrievalError(f"weights {weights.shape} do not match features {features.shape[:2]}")
     c = cells_per_tile

@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vggt_slam_pp.dem import DemConfig, DemGrid, GroundPlane, encoder_image, export_dem, fit_ground_plane, rasterize
+from vggt_slam_pp.dem import (
+    DemConfig,
+    DemGrid,
+    GroundPlane,
+    encoder_image,
+    export_dem,
+    fit_ground_plane,
+    rasterize,
+)
 from vggt_slam_pp.dem.images import hillshade_rgb
 from vggt_slam_pp.dem.raster import reduce_heights
 from vggt_slam_pp.errors import DemError
@@ -143,3 +151,21 @@ def test_images_and_export(tmp_path, rng):
     data = np.load(paths["array"])
     assert np.array_equal(data["heights"], layer.heights, equal_nan=True) and float(data["mpp"]) == g.mpp
     assert paths["color"].stat().st_size > 0 and paths["gray"].stat().st_size > 0
+
+
+def test_dem_map_reraster_on_pose_change_and_fused(rng):
+    from vggt_slam_pp.dem.map import DemMap
+    from vggt_slam_pp.geometry import make_sim3
+
+    dm = DemMap(_grid())
+    pts = _surface(rng, lambda u, v: 0.5 + 0 * u, 20_000, 3.0)
+    dm.add(0, pts, np.eye(4))
+    dm.add(1, pts, make_sim3(1.0, np.eye(3), [2.0, 0.0, 0.5]))
+    assert not dm.update_pose(0, make_sim3(1.0, np.eye(3), [0.01, 0, 0]))  # < half a pixel: kept
+    assert dm.update_pose(0, make_sim3(1.0, np.eye(3), [0.0, 4.0, 0.0]))  # moved: re-rasterised
+    assert dm.layer(0).origin_px[1] == 40
+    fused, origin = dm.fused()
+    assert origin == (0, 0) and np.nanmax(fused) == pytest.approx(1.0, abs=1e-6)
+    assert np.isnan(fused).any()  # the gap between the two layers
+    with pytest.raises(DemError, match="no DEM layer"):
+        dm.layer(7)

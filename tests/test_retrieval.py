@@ -140,3 +140,25 @@ def test_vocabulary_tile_vlads_and_candidates(rng):
     assert va.shape == (4, 4, 9)
     cands = rank_candidates(9, va.reshape(-1, 9)[:5], {1: va.reshape(-1, 9), 2: vb.reshape(-1, 9)})
     assert cands[0].match == 1 and cands[0].votes == 5
+
+
+def test_dinov2_encoder_with_a_tiny_model(rng):
+    from vggt_slam_pp.models import build_dinov2
+    from vggt_slam_pp.retrieval import DinoV2Encoder
+
+    model = build_dinov2({"embed_dim": 48, "depth": 3, "num_heads": 3})
+    enc = DinoV2Encoder(model=model)
+    img = rng.random((56, 70)).astype(np.float32)
+    f = enc.encode(img)
+    v = enc.vlad_features(img)
+    assert f.shape == (4, 5, 48) and v.shape == (4, 5, 48) and enc.value_layer == 1
+    assert np.isfinite(f).all() and not np.allclose(f, v)
+
+
+def test_benchmarks_run_small():
+    from vggt_slam_pp.benchmarks import bench_dem, bench_retrieval
+
+    d = bench_dem(n_points=100_000, repeats=1)
+    assert d["points_per_s"] > 0 and d["ratio_to_count_baseline"] > 0 and d["layer_shape"][0] > 0
+    r = bench_retrieval(n_large=3000, n_small=1000, dim=32, queries=50)
+    assert 0.9 <= r["recall_at_10"] <= 1.0 and r["latency_ratio_100k_10k"] > 0

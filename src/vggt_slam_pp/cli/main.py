@@ -215,6 +215,29 @@ class _Truncated:
         return idx[keep], gt.subset(np.nonzero(keep)[0])
 
 
+# ------------------------------------------------------------------ bench
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vggt_slam_pp import benchmarks
+
+    if args.suite == "dem":
+        result = benchmarks.bench_dem(n_points=args.points)
+        summary = (f"rasterised {result['points']:,} points (softmax) in {result['seconds']:.3f} s: "
+                   f"{result['points_per_s'] / 1e6:.1f} M points/s, {result['ratio_to_count_baseline']:.2f}x the "
+                   f"index+bincount baseline (target <= 3)")
+    elif args.suite == "retrieval":
+        result = benchmarks.bench_retrieval()
+        summary = (f"HNSW recall@10 at 100k tiles {result['recall_at_10']:.3f} (target >= 0.95); latency "
+                   f"{result['latency_ms_10k']:.3f} ms (10k) -> {result['latency_ms_100k']:.3f} ms (100k), ratio "
+                   f"{result['latency_ratio_100k_10k']:.2f} (target <= 3)")
+    else:
+        raise VggtSlamError(f"bench {args.suite}: not implemented yet (available: dem, retrieval)")
+    if args.json:
+        _print_json(result)
+    else:
+        print(summary)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vggt-slam-pp", description="VGGT-SLAM++ command-line tools.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -290,6 +313,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-save-predictions", action="store_true", help="do not write predictions/")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
+
+    b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency)")
+    b.add_argument("suite", choices=("dem", "retrieval", "covisibility"))
+    b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench)
 
     w = sub.add_parser("weights", help="list cached weights, fetch official ones, or import a local file",
                        description="list (default): what is cached; fetch NAME...: download into the cache "

@@ -35,19 +35,19 @@ def test_descriptor_aggregation_matches_brute_force(rng):
     m = rng.uniform(0, 1, (rows, cols)).astype(np.float32)
     for window in (9, None):
         desc, support = aggregate(f, m, c, window)
-        for I, J in ((0, 0), (3, 2), (5, 4)):
-            cy, cx = c * I + c / 2, c * J + c / 2
+        for ti, tj in ((0, 0), (3, 2), (5, 4)):
+            cy, cx = c * ti + c / 2, c * tj + c / 2
             num, den = np.zeros(D), 0.0
             for y in range(rows):
                 for x in range(cols):
-                    dy, dx = y - c * I, x - c * J
+                    dy, dx = y - c * ti, x - c * tj
                     if window is not None and not (-8 <= dy <= 9 and -8 <= dx <= 9):
                         continue
                     w = np.exp(-((y + 0.5 - cy) ** 2 + (x + 0.5 - cx) ** 2) / (2 * 4.0**2))
                     num += w * m[y, x] * f[y, x]
                     den += w * m[y, x]
-            assert np.allclose(desc[I, J], num / np.linalg.norm(num), atol=1e-5)
-            assert np.isclose(support[I, J], den, rtol=1e-5)
+            assert np.allclose(desc[ti, tj], num / np.linalg.norm(num), atol=1e-5)
+            assert np.isclose(support[ti, tj], den, rtol=1e-5)
 
 
 def test_gradient_weights_ignore_flat_and_empty_cells():

@@ -91,3 +91,100 @@ def bench_retrieval(n_large: int = 100_000, n_small: int = 10_000, dim: int = 76
     out["latency_ratio_100k_10k"] = out["latency_ms_100k"] / out["latency_ms_10k"]
     out["targets"] = {"recall_at_10": 0.95, "latency_ratio_100k_10k": 3.0}
     return out
+
+
+def _scene_sequence(scene: str, frames: int, width: int, height: int, workdir, seed: int):
+    """Render (or reuse) a synthetic sequence; ``scene`` is figure8, loop or kitti00."""
+    from pathlib import Path
+
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    out = Path(workdir) / f"{scene}_{frames}_{width}x{height}_{seed}"
+    if not (out / "groundtruth.txt").is_file():
+        if scene == "kitti00":
+            gt = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "gt_trajectories_only"
+            files = sorted(gt.glob("*00*")) if gt.is_dir() else []
+            files = [f for f in files if f.is_file() and "times" not in f.name]
+            if not files:
+                return None
+            sc = make_scene(trajectory_file=files[0], frames=frames, width=width, height=height, seed=seed)
+        else:
+            sc = make_scene(scene, frames=frames, width=width, height=height, seed=seed)
+        write_sequence(sc, out)
+    return open_source(out)
+
+
+def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600, width: int = 320,
+                       height: int = 240, submap_size: int = 8, tau_disparity: float = 20.0,
+                       overlap_threshold: float = 0.3, workdir: str = "runs/bench_covisibility",
+                       seed: int = 0) -> dict:
+    """Covisibility recall and VPR top-1 precision with the ``hog`` encoder on synthetic revisits.
+
+    Each scene runs through the simulated backbone (default noise) with ``submap_size`` keyframes per
+    submap; the DEM layers use the odometry (drifting) world poses. Ground-truth overlap: the share of
+    2 m tiles two submaps' noise-free footprints (ground-truth poses) have in common, relative to the
+    smaller one, >= ``overlap_threshold``. A revisit query is a submap with a true overlap outside the
+    excluded recent neighbours.
+    """
+    from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
+    from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
+    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    from vggt_slam_pp.geometry.lie import sim3_inverse, transform_points
+    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    results = {}
+    for scene in scenes:
+        source = _scene_sequence(scene, frames, width, height, workdir, seed)
+        if source is None:
+            results[scene] = {"skipped": "../shared/data/gt_trajectories_only not found"}
+            continue
+        idx, gt = source.frame_ground_truth()
+        gt_poses = dict(zip(idx.tolist(), gt.poses, strict=True))
+        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise(seed=seed)),
+                      FrontendConfig(keyframes=KeyframeConfig(tau_disparity=tau_disparity), submap_size=submap_size))
+        for i in range(len(source)):
+            fe.process(source[i])
+        res = fe.finish()
+        exact = SimulatedBackbone(gt_poses, SimulatedNoise.zero())
+        stage = CovisibilityStage(HogEncoder(), CovisibilityConfig())
+        footprints, outputs = [], []
+        for sm, T_ws in zip(res.submaps, res.T_world_submap, strict=True):
+            pred = sm.prediction
+            pts = np.concatenate([p for p in pred.points if len(p)])
+            centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+            outputs.append(stage.process(sm.id, transform_points(T_ws, pts), transform_points(T_ws, centres)))
+            frames_sm = [source[int(i)] for i in sm.frame_indices]
+            ex = exact.predict(frames_sm)
+            world = transform_points(gt_poses[int(sm.frame_indices[0])], np.concatenate(ex.points))
+            footprints.append({tuple(t) for t in np.floor(world[:, :2] / 2.0).astype(int)})
+        n = len(footprints)
+        overlap = np.zeros((n, n))
+        for i in range(n):
+            for j in range(i):
+                inter = len(footprints[i] & footprints[j])
+                overlap[i, j] = inter / max(1, min(len(footprints[i]), len(footprints[j])))
+        excl = stage.config.index.exclude_recent
+        revisit, hit, cand_total, cand_ok = 0, 0, 0, 0
+        for i, out in enumerate(outputs):
+            true = {j for j in range(max(0, i - excl)) if overlap[i, j] >= overlap_threshold}
+            if not true:
+                continue
+            revisit += 1
+            found = {e.match for e in out.edges}
+            hit += bool(true & found)
+            if out.candidates:
+                cand_total += 1
+                cand_ok += out.candidates[0].match in true
+        timings = {k: float(np.mean([o.timings[k] for o in outputs])) for k in outputs[0].timings}
+        results[scene] = {"frames": len(source), "submaps": n, "revisit_queries": revisit,
+                          "covisibility_recall": hit / revisit if revisit else None,
+                          "vpr_top1_precision": cand_ok / cand_total if cand_total else None,
+                          "queries_with_candidates": cand_total, "per_submap_seconds": timings}
+    recalls = [r["covisibility_recall"] for r in results.values() if r.get("covisibility_recall") is not None]
+    precs = [r["vpr_top1_precision"] for r in results.values() if r.get("vpr_top1_precision") is not None]
+    return {"scenes": results, "encoder": "hog",
+            "covisibility_recall": float(np.mean(recalls)) if recalls else None,
+            "vpr_top1_precision": float(np.mean(precs)) if precs else None,
+            "targets": {"covisibility_recall": 0.9, "vpr_top1_precision": 0.8}}

@@ -103,9 +103,8 @@ def _scene_sequence(scene: str, frames: int, width: int, height: int, workdir, s
     out = Path(workdir) / f"{scene}_{frames}_{width}x{height}_{seed}"
     if not (out / "groundtruth.txt").is_file():
         if scene == "kitti00":
-            gt = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "gt_trajectories_only"
-            files = sorted(gt.glob("*00*")) if gt.is_dir() else []
-            files = [f for f in files if f.is_file() and "times" not in f.name]
+            gt = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "gt_trajectories_only"
+            files = sorted(gt.rglob("00.txt")) if gt.is_dir() else []
             if not files:
                 return None
             sc = make_scene(trajectory_file=files[0], frames=frames, width=width, height=height, seed=seed)

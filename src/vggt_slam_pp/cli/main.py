@@ -230,7 +230,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
                    f"{result['latency_ms_10k']:.3f} ms (10k) -> {result['latency_ms_100k']:.3f} ms (100k), ratio "
                    f"{result['latency_ratio_100k_10k']:.2f} (target <= 3)")
     else:
-        raise VggtSlamError(f"bench {args.suite}: not implemented yet (available: dem, retrieval)")
+        result = benchmarks.bench_covisibility(frames=args.frames, workdir=str(args.workdir))
+        summary = "\n".join(
+            f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
+            f"{name}: {r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
+            f"{r['covisibility_recall']}, VPR top-1 precision {r['vpr_top1_precision']}"
+            for name, r in result["scenes"].items())
+        summary += (f"\nmean: covisibility recall {result['covisibility_recall']} (target >= 0.9), "
+                    f"VPR top-1 precision {result['vpr_top1_precision']} (target >= 0.8)")
     if args.json:
         _print_json(result)
     else:
@@ -317,6 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency)")
     b.add_argument("suite", choices=("dem", "retrieval", "covisibility"))
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
+    b.add_argument("--frames", type=int, default=600, help="covisibility: frames per synthetic sequence")
+    b.add_argument("--workdir", type=Path, default=Path("runs/bench_covisibility"),
+                   help="covisibility: where the rendered sequences are cached")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 

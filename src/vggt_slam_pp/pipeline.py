@@ -31,6 +31,7 @@ from vggt_slam_pp import __version__
 from vggt_slam_pp.errors import EvaluationError, FrontendError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
+from vggt_slam_pp.frontend.odometry import chain
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 
@@ -127,7 +128,7 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     except VggtSlamError as exc:
         error = exc
         log.error("run failed: %s; writing the outputs of %d finished submaps", exc, len(frontend.submaps))
-        result = FrontendResult(frontend.submaps, frontend.edges, _chain(frontend), frontend.decisions,
+        result = FrontendResult(frontend.submaps, frontend.edges, chain(frontend.edges), frontend.decisions,
                                 dict(frontend.timings)) if frontend.submaps else None
     finally:
         backbone.close()
@@ -139,12 +140,6 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     if error is not None:
         raise error
     return report
-
-
-def _chain(frontend: Frontend) -> list[np.ndarray]:
-    from vggt_slam_pp.frontend.odometry import chain
-
-    return chain(frontend.edges)
 
 
 def _undistorted(frame):

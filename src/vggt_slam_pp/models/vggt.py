@@ -89,8 +89,10 @@ class VggtConfig:
         if unknown:
             raise ModelError(f"unknown VGGT config sections {unknown}; expected some of {sorted(known)}")
         base = cls()
-        top = config_from_dict(_Top, d.get("VGGT", {}))
-        kw: dict[str, Any] = {f.name: getattr(top, f.name) for f in dataclasses.fields(_Top)}
+        nested = {"dino", "aggregator", "camera_head", "dpt", "depth_head", "point_head", "track_head"}
+        top = {k: v for k, v in d.get("VGGT", {}).items() if k not in nested}
+        kw: dict[str, Any] = {f.name: getattr(config_from_dict(cls, top), f.name)
+                              for f in dataclasses.fields(cls) if f.name not in nested}
         kw["dino"] = _merge(base.dino, d.get("dino", {}))
         kw["aggregator"] = _merge(base.aggregator, d.get("aggregator", {}))
         kw["camera_head"] = _merge(base.camera_head, d.get("camera_head", {}))
@@ -102,17 +104,6 @@ class VggtConfig:
         tr = _merge(base.track_head.tracker, th.pop("tracker", {}))
         kw["track_head"] = dataclasses.replace(_merge(base.track_head, th), feature_extractor=fe, tracker=tr)
         return cls(**kw)
-
-
-@dataclass(frozen=True)
-class _Top:
-    img_size: int = 518
-    patch_size: int = 14
-    embed_dim: int = 1024
-    enable_camera: bool = True
-    enable_point: bool = True
-    enable_depth: bool = True
-    enable_track: bool = True
 
 
 def _merge(base, d: Mapping[str, Any]):

@@ -58,7 +58,7 @@ class CovisibilityStage:
         self.vocab: Vocabulary | None = None
         self._vlad_cells: list[np.ndarray] = []
         self._tile_vlads: dict[int, np.ndarray] = {}
-        self._tile_cells: dict[int, np.ndarray] = {}
+        self._tile_cells: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # features, usable tiles, cells/tile
 
     def _ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
                      median_depth: float | None) -> None:

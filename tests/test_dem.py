@@ -14,7 +14,7 @@ from vggt_slam_pp.dem import (
     fit_ground_plane,
     rasterize,
 )
-from vggt_slam_pp.dem.images import hillshade_rgb
+from vggt_slam_pp.dem.images import fill_holes, hillshade_rgb
 from vggt_slam_pp.dem.raster import reduce_heights
 from vggt_slam_pp.errors import DemError
 from vggt_slam_pp.geometry import so3_exp
@@ -169,3 +169,18 @@ def test_dem_map_reraster_on_pose_change_and_fused(rng):
     assert np.isnan(fused).any()  # the gap between the two layers
     with pytest.raises(DemError, match="no DEM layer"):
         dm.layer(7)
+
+
+def test_fill_holes_fills_sampling_gaps_only():
+    h = np.full((20, 20), np.nan, np.float32)
+    h[::4, :10] = 1.0  # rows of samples every 4 px (sparse far ground)
+    h[::4, 10:] = 3.0
+    f = fill_holes(h, 2)
+    assert np.array_equal(f[np.isfinite(h)], h[np.isfinite(h)])  # data untouched
+    assert np.isfinite(f[:17]).all()  # gaps of 3 rows closed
+    assert np.allclose(f[2, :8], 1.0) and np.allclose(f[2, 12:], 3.0)
+    assert 1.0 < f[2, 10] < 3.0  # mean of the neighbourhood at the boundary
+    big = np.full((30, 30), np.nan, np.float32)
+    big[:5] = 0.0
+    assert np.isnan(fill_holes(big, 3)[10:]).all()  # holes wider than the radius stay empty
+    assert fill_holes(h, 0) is h

@@ -18,6 +18,25 @@ from vggt_slam_pp.dem.plane import GroundPlane
 from vggt_slam_pp.errors import DemError
 
 
+def fill_holes(heights: np.ndarray, radius_px: int) -> np.ndarray:
+    """Fill empty pixels that have data within ``radius_px`` (box window) with the mean of that data.
+
+    Points sparser than the grid (far ground, a subsampled backbone) leave empty pixels between
+    image rows; left empty they draw a stripe texture that depends on the camera, not on the place.
+    Valid pixels are unchanged; larger holes stay NaN. ``radius_px`` 0 returns the input.
+    """
+    if radius_px <= 0:
+        return heights
+    valid = np.isfinite(heights)
+    k = (2 * radius_px + 1, 2 * radius_px + 1)
+    total = cv2.boxFilter(np.where(valid, heights, 0.0).astype(np.float32), -1, k, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(valid.astype(np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        filled = np.where(count > 0.5, total / count, np.nan)
+    return np.where(valid, heights, filled).astype(np.float32)
+
+
 def normalized_heights(heights: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> np.ndarray:
     """Heights [H,W] (NaN = empty) -> [0,1] by the given percentiles of the valid heights; NaN kept."""
     valid = np.isfinite(heights)

@@ -35,6 +35,7 @@ class DemConfig:
     tau: float = 0.02
     alpha_edge: float = 0.95
     percentiles: tuple[float, float] = (0.5, 99.5)
+    fill_radius_px: int = 3  # encoder input only: empty pixels with data this close are filled
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vggt_slam_pp.dem import DemConfig, DemGrid, DemLayer, encoder_image, fit_ground_plane, rasterize
+from vggt_slam_pp.dem.images import fill_holes
 from vggt_slam_pp.retrieval.descriptors import aggregate, cell_weights
 from vggt_slam_pp.retrieval.encoders import Encoder
 from vggt_slam_pp.retrieval.index import CovisibilityEdge, IndexConfig, TileIndex
@@ -79,10 +80,11 @@ class CovisibilityStage:
         layer = rasterize(points_world, self.grid, submap_id, c.dem.reducer, c.dem.tau)
         t["raster_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        img = encoder_image(layer.heights, c.dem.alpha_edge, c.dem.percentiles)
+        heights = fill_holes(layer.heights, c.dem.fill_radius_px)
+        img = encoder_image(heights, c.dem.alpha_edge, c.dem.percentiles)
         feats = self.encoder.encode(img)
         vfeats = self.encoder.vlad_features(img) if self.encoder.name != "hog" else feats
-        m = cell_weights(layer.heights, self.encoder.patch_px)[: feats.shape[0], : feats.shape[1]]
+        m = cell_weights(heights, self.encoder.patch_px)[: feats.shape[0], : feats.shape[1]]
         cpt = max(1, self.grid.tile_px // self.encoder.patch_px)
         tiles, _ = aggregate(feats, m, cpt, window_tiles=9)
         chips, _ = aggregate(feats, m, cpt, window_tiles=None)

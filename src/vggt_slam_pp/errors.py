@@ -51,3 +51,7 @@ class DemError(VggtSlamError):
 
 class RetrievalError(VggtSlamError):
     """Descriptors or the tile index cannot be used: wrong dimension, an index from another configuration."""
+
+
+class BackendError(VggtSlamError):
+    """The back-end failed: a bad pose-graph edge, a solver failure, or the worker process died."""

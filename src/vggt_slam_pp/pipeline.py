@@ -1,6 +1,6 @@
 """The facade: run the system on a frame source and write its outputs.
 
-``run(source, config, out_dir)`` runs the front-end (the back-end joins in a later milestone) and
+``run(source, config, out_dir)`` runs the front-end and (unless ``backend=False``) the back-end, and
 writes, atomically, into ``out_dir``:
 
 * ``keyframes_odometry.txt`` / ``.kitti``: keyframe poses (TUM with timestamps, 12-column KITTI);
@@ -8,7 +8,10 @@ writes, atomically, into ``out_dir``:
 * ``frames.csv``: ``index,timestamp,keyframe,interpolated,disparity_px,tracked,reason`` per frame;
 * ``config.json``: the resolved configuration; ``report.json``: counts, per-stage timings, throughput,
   peak memory, odometry edges and, with ground truth, ``ate_rmse_odometry`` (Sim(3)-aligned, keyframes);
-* ``predictions/``: every submap's raw prediction (safetensors), replayable with ``--backbone replay``.
+* ``predictions/``: every submap's raw prediction (safetensors), replayable with ``--backbone replay``;
+* with the back-end (:mod:`vggt_slam_pp.outputs`): ``keyframes.txt``/``.kitti`` and ``frames.txt``/``.kitti``
+  (corrected), ``graph.json``, ``map.ply``, ``dem/``, ``trajectory.png`` and the loop figures in the report;
+  ``submaps/`` holds each submap's points (the back-end's on-disk store).
 
 If the run fails part-way (a :class:`VggtSlamError`), the outputs of the submaps finished so far are
 still written, with the error in ``report.json``, and the error is re-raised.
@@ -28,10 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from vggt_slam_pp import __version__
+from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, SubmapMessage
+from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import EvaluationError, FrontendError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
 from vggt_slam_pp.frontend.odometry import chain
+from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 
@@ -58,7 +64,8 @@ class RunConfig:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     calibrated: bool = False
     save_predictions: bool = True
-    backend: bool = False  # the back-end is a later milestone
+    backend: bool = True  # loop closure; False = odometry only
+    backend_config: BackendConfig = field(default_factory=BackendConfig)
 
 
 def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
@@ -110,9 +117,12 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
 
         store = PredictionStore(out / "predictions")
     frontend = Frontend(backbone, config.frontend, store=store)
+    backend = Backend(config.backend_config, SubmapStore(out / "submaps")) if config.backend else None
+    feeder = _BackendFeeder(frontend, backend)
     n = len(source)
     error: VggtSlamError | None = None
     t_read = 0.0
+    backend_result: BackendResult | None = None
     try:
         for i in range(n):
             t = time.perf_counter()
@@ -121,10 +131,14 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
                     and backbone.name != "colmap":
                 frame = _undistorted(frame)
             t_read += time.perf_counter() - t
-            frontend.process(frame)
+            if frontend.process(frame) is not None:
+                feeder.feed()
             if progress:
                 progress(i + 1, n)
         result = frontend.finish()
+        feeder.feed()
+        if backend is not None:
+            backend_result = backend.finish()
     except VggtSlamError as exc:
         error = exc
         log.error("run failed: %s; writing the outputs of %d finished submaps", exc, len(frontend.submaps))
@@ -134,12 +148,48 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
         backbone.close()
     total = time.perf_counter() - t0
     report = _report(source, config, result, total, t_read, error)
+    report["timings"] = {**report.get("timings", {}), "backend_s": feeder.seconds}
     if result is not None:
         _write_trajectories(out, result)
+    if result is not None and backend_result is not None:
+        from vggt_slam_pp.outputs import write_backend_outputs
+
+        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps"),
+                                            config.backend_config))
+        if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
+            report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
+    report["frontend_fps"] = (len(result.decisions) / max(total - feeder.seconds, 1e-9)) if result else None
+    report["peak_rss_mb"] = _peak_rss_mb()
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
     if error is not None:
         raise error
     return report
+
+
+class _BackendFeeder:
+    """Sends every finished submap to the back-end (points to the on-disk store first) and releases the
+    front-end's copy of the points of submaps it no longer needs (bounded memory)."""
+
+    def __init__(self, frontend: Frontend, backend: Backend | None) -> None:
+        self.frontend, self.backend = frontend, backend
+        self.sent = 0
+        self.seconds = 0.0
+
+    def feed(self) -> None:
+        if self.backend is None:
+            return
+        t = time.perf_counter()
+        while self.sent < len(self.frontend.submaps):
+            sm = self.frontend.submaps[self.sent]
+            pred = sm.prediction
+            pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
+            self.backend.store.put(sm.id, pts)
+            centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+            edge = self.frontend.edges[sm.id - 1] if sm.id > 0 else None
+            self.backend.add_submap(SubmapMessage(sm.id, centres, edge))
+            self.sent += 1
+        self.frontend.release_points(keep_last=1)
+        self.seconds += time.perf_counter() - t
 
 
 def _undistorted(frame):
@@ -193,7 +243,8 @@ def _report(source: FrameSource, config: RunConfig, result: FrontendResult | Non
                    "degraded": e.degraded} for e in result.edges],
         "invalid_frames": [int(i) for sm in result.submaps for i, v in
                            zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
-        "points_per_submap": [sm.prediction.num_points() for sm in result.submaps],
+        "points_per_submap": [sm.prediction.info.get("points_after_filter", sm.prediction.num_points())
+                              for sm in result.submaps],
     })
     gt_pair = source.frame_ground_truth()
     if gt_pair is not None:

@@ -10,7 +10,6 @@ import argparse
 import json
 import logging
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -96,33 +95,24 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------ demo
 def cmd_demo(args: argparse.Namespace) -> int:
-    from vggt_slam_pp.eval import compute_ate
+    from vggt_slam_pp.frontend.frontend import FrontendConfig
+    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
     from vggt_slam_pp.io import open_source
-    from vggt_slam_pp.io.trajectory import write_tum
+    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
     from vggt_slam_pp.synthetic import make_scene, write_sequence
-    from vggt_slam_pp.synthetic.drift import simulate_drift
 
     out = Path(args.out)
     seq_dir = out / "sequence"
-    t0 = time.perf_counter()
-    scene = make_scene("loop", frames=args.frames, seed=args.seed, width=args.width, height=args.height)
-    summary = write_sequence(scene, seq_dir, progress=_progress(len(scene.trajectory), "render"))
+    if not (seq_dir / "groundtruth.txt").is_file():
+        scene = make_scene("loop", frames=args.frames, seed=args.seed, width=args.width, height=args.height)
+        write_sequence(scene, seq_dir, progress=_progress(len(scene.trajectory), "render"))
     source = open_source(seq_dir)
-    matched = source.frame_ground_truth()
-    assert matched is not None  # written by write_sequence
-    _, gt = matched
-    # Until the SLAM front-end lands, the demo evaluates a simulated drifting odometry estimate.
-    est = simulate_drift(gt, seed=args.seed)
-    write_tum(out / "trajectory_odometry_simulated.txt", est)
-    ate = compute_ate(gt, est, "sim3")
-    report = {"sequence": str(seq_dir), "frames": len(source), "path_length_m": gt.path_length(),
-              "render_s_per_frame": summary["seconds_per_frame"], "ate_rmse_simulated_odometry": ate.rmse,
-              "seconds_total": time.perf_counter() - t0}
-    (out / "report.json").write_text(json.dumps(report, indent=2))
-    print(f"synthetic block loop: {len(source)} frames, {gt.path_length():.1f} m, rendered at "
-          f"{summary['seconds_per_frame']:.2f} s/frame -> {seq_dir}")
-    print(f"simulated drifting odometry: ATE rmse {ate.rmse:.3f} m (Sim(3)-aligned, {ate.n_matched} poses)")
-    print(f"outputs: {out}/ (report.json, trajectory_odometry_simulated.txt, sequence/)")
+    config = RunConfig(backbone=BackboneConfig(name="simulated", seed=args.seed),
+                       frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8))
+    print(f"synthetic block loop: {len(source)} frames -> {seq_dir}; running VGGT-SLAM++ (simulated backbone, "
+          "hog encoder, offline)")
+    report = run(source, config, out / "run", progress=_progress(len(source), "frames"))
+    _print_summary(report, out / "run")
     return 0
 
 
@@ -178,18 +168,31 @@ def cmd_run(args: argparse.Namespace) -> int:
                                 submap_size=args.submap_size),
         calibrated=args.calibrated, save_predictions=not args.no_save_predictions,
         backend=not args.no_backend)
-    if config.backend:
-        log.warning("the back-end (loop closure) is not implemented yet; running the front-end only")
-        config = dataclasses.replace(config, backend=False)
+    if config.backend and args.encoder != "hog":
+        config = dataclasses.replace(config, backend_config=dataclasses.replace(
+            config.backend_config, encoder=args.encoder, encoder_weights=args.encoder_weights))
     report = run(source, config, args.out, progress=_progress(len(source), "frames", disable=args.quiet))
+    _print_summary(report, args.out)
+    return 0
+
+
+def _print_summary(report: dict, out) -> None:
     msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
-    if "ate_rmse_odometry" in report:
-        msg += f"; odometry ATE rmse {report['ate_rmse_odometry']:.4f} (Sim(3)-aligned, keyframes)"
     print(msg)
-    print(f"outputs: {args.out}/ (keyframes_odometry.txt/.kitti, frames_odometry.txt/.kitti, frames.csv, "
-          "report.json, config.json, predictions/)")
-    return 0
+    if "loops_accepted" in report:
+        print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected; "
+              f"back-end {report['backend_s_per_submap'] * 1000:.0f} ms per submap")
+    if "ate_rmse_odometry" in report:
+        line = f"ATE rmse (Sim(3)-aligned, keyframes): odometry {report['ate_rmse_odometry']:.4f}"
+        if "ate_rmse" in report:
+            line += f", corrected {report['ate_rmse']:.4f} ({100 * report.get('ate_reduction', 0):+.0f} % reduction)"
+        print(line)
+    files = "keyframes_odometry.txt/.kitti, frames_odometry.txt/.kitti, frames.csv, report.json, config.json"
+    if "loops_accepted" in report:
+        files = ("keyframes.txt/.kitti, frames.txt/.kitti (corrected), " + files +
+                 ", graph.json, map.ply, dem/, trajectory.png")
+    print(f"outputs: {out}/ ({files})")
 
 
 class _Truncated:
@@ -253,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="generate a synthetic loop sequence and run on it, offline")
     d.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
-    d.add_argument("--frames", type=int, default=200)
+    d.add_argument("--frames", type=int, default=600)
     d.add_argument("--width", type=int, default=320)
     d.add_argument("--height", type=int, default=240)
     d.add_argument("--seed", type=int, default=0)
@@ -304,6 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--calibrated", action="store_true",
                    help="use the dataset's intrinsics and distortion (undistort / known camera)")
     r.add_argument("--no-backend", action="store_true", help="front-end only (odometry)")
+    r.add_argument("--encoder", choices=("hog", "dinov2"), default="hog",
+                   help="DEM encoder for covisibility (default hog: weight-free)")
+    r.add_argument("--encoder-weights", default=None, help="dinov2: weights file or hub name")
     r.add_argument("--layout", default="auto", help="input layout (default: detected)")
     r.add_argument("--gt", type=Path, help="ground-truth trajectory file for evaluation")
     r.add_argument("--stride", type=int, default=1, help="use every N-th input frame")

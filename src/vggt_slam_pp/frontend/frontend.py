@@ -112,6 +112,20 @@ class Frontend:
         frames = self.assembler.add(frame)
         return self._build(frames) if frames else None
 
+    def release_points(self, keep_last: int = 1) -> None:
+        """Drop the point observations of all but the last ``keep_last`` submaps (the next odometry edge
+        needs only the last one); poses and frame indices stay. Bounds the front-end's memory."""
+        for k in range(max(0, len(self.submaps) - keep_last)):
+            sm = self.submaps[k]
+            pred = sm.prediction
+            if pred.num_points() == 0 and pred.depth is None:
+                continue
+            empty = [np.zeros((0, 3), np.float32)] * pred.num_frames
+            light = dataclasses.replace(pred, points=empty, conf=[np.zeros(0, np.float32)] * pred.num_frames,
+                                        pixels=[np.zeros((0, 2), np.float32)] * pred.num_frames,
+                                        keys=[np.zeros(0, np.int64)] * pred.num_frames, depth=None, depth_conf=None)
+            self.submaps[k] = dataclasses.replace(sm, prediction=light)
+
     def finish(self) -> FrontendResult:
         frames = self.assembler.flush()
         if frames:

@@ -23,6 +23,7 @@ import numpy as np
 
 from vggt_slam_pp.dem import DemConfig, DemGrid, DemLayer, encoder_image, fit_ground_plane, rasterize
 from vggt_slam_pp.dem.images import fill_holes
+from vggt_slam_pp.errors import RetrievalError
 from vggt_slam_pp.retrieval.descriptors import aggregate, cell_weights
 from vggt_slam_pp.retrieval.encoders import Encoder
 from vggt_slam_pp.retrieval.index import CovisibilityEdge, IndexConfig, TileIndex
@@ -39,6 +40,21 @@ class CovisibilityConfig:
     vlad_clusters: int = 32
     vlad_context_tiles: int = 3
     vlad_min_score: float = 0.0
+    vlad_sample: int = 100_000  # features kept for (re)training the vocabulary
+    vlad_cache_submaps: int = 64  # tile VLADs cached for this many submaps (LRU-ish)
+
+
+@dataclass(frozen=True, eq=False)
+class _Described:
+    layer: DemLayer
+    vfeats: np.ndarray  # [rows, cols, D] VLAD features
+    m: np.ndarray  # [rows, cols] cell weights
+    cpt: int  # cells per tile
+    tiles: np.ndarray  # [Tr, Tc, D]
+    chips: np.ndarray  # [Tr, Tc, D]
+    usable: np.ndarray  # [Tr, Tc] tiles entering the gallery
+    chip_ok: np.ndarray  # [Tr, Tc] chips that query
+    keys: np.ndarray  # [Tr, Tc, 2] global tile keys
 
 
 @dataclass
@@ -48,6 +64,8 @@ class StageResult:
     edges: list[CovisibilityEdge]
     candidates: list[LoopCandidate]
     timings: dict[str, float]
+    chip_keys: np.ndarray  # [C,2] (Iu, Iv) of the chips that voted
+    chip_descriptors: np.ndarray  # [C,D]
 
 
 class CovisibilityStage:
@@ -60,6 +78,7 @@ class CovisibilityStage:
         self._vlad_cells: list[np.ndarray] = []
         self._tile_vlads: dict[int, np.ndarray] = {}
         self._tile_cells: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # features, usable tiles, cells/tile
+        self._vlad_seen = 0
 
     def _ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
                      median_depth: float | None) -> None:
@@ -71,15 +90,9 @@ class CovisibilityStage:
                 log.warning("tile_px %d is not a multiple of the encoder patch %d", self.grid.tile_px,
                             self.encoder.patch_px)
 
-    def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
-                median_depth: float | None = None) -> StageResult:
+    def _describe(self, submap_id: int, points_world: np.ndarray) -> _Described:
         c = self.config
-        t = {}
-        t0 = time.perf_counter()
-        self._ensure_grid(points_world, camera_centers, median_depth)
         layer = rasterize(points_world, self.grid, submap_id, c.dem.reducer, c.dem.tau)
-        t["raster_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
         heights = fill_holes(layer.heights, c.dem.fill_radius_px)
         img = encoder_image(heights, c.dem.alpha_edge, c.dem.percentiles)
         feats = self.encoder.encode(img)
@@ -91,39 +104,90 @@ class CovisibilityStage:
         occ = layer.tile_occupancy()
         tr, tc = tiles.shape[:2]
         usable = (occ[:tr, :tc] >= c.min_occupancy) & (np.linalg.norm(tiles, axis=2) > 0)
+        chip_ok = usable & (np.linalg.norm(chips, axis=2) > 0)
+        return _Described(layer, vfeats, m, cpt, tiles, chips, usable, chip_ok, _keys(layer, tr, tc))
+
+    def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
+                median_depth: float | None = None) -> StageResult:
+        c = self.config
+        t = {}
+        t0 = time.perf_counter()
+        self._ensure_grid(points_world, camera_centers, median_depth)
+        t["raster_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        d = self._describe(submap_id, points_world)
         t["encode_s"] = time.perf_counter() - t0
         if self.index is None:
-            self.index = TileIndex(tiles.shape[2], c.index, self.encoder.name)
+            self.index = TileIndex(d.tiles.shape[2], c.index, self.encoder.name)
         t0 = time.perf_counter()
-        chip_ok = usable & (np.linalg.norm(chips, axis=2) > 0)
-        edges = self.index.vote(submap_id, chips[chip_ok])
+        edges = self.index.vote(submap_id, d.chips[d.chip_ok])
         t["vote_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         candidates: list[LoopCandidate] = []
-        if self.vocab is None and sum(len(x) for x in self._vlad_cells) >= c.vlad_clusters * 4:
-            self.vocab = Vocabulary.train(np.concatenate(self._vlad_cells), c.vlad_clusters)
-            self._tile_vlads = {}
+        if self.vocab is None and self._vlad_count() >= c.vlad_clusters * 4:
+            self._train_vocabulary()
         if self.vocab is not None and edges:
-            q = tile_vlads(vfeats, self.vocab, cpt, c.vlad_context_tiles)[:tr, :tc][chip_ok]
+            tr, tc = d.usable.shape
+            q = tile_vlads(d.vfeats, self.vocab, d.cpt, c.vlad_context_tiles)[:tr, :tc][d.chip_ok]
             gallery = {e.match: self._vlads_of(e.match) for e in edges}
             gallery = {k: v for k, v in gallery.items() if len(v)}
             candidates = rank_candidates(submap_id, q, gallery, c.vlad_min_score)
         t["vlad_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        self.index.add(submap_id, _keys(layer, tr, tc)[usable], tiles[usable])
-        self._tile_cells[submap_id] = (vfeats, usable, cpt)
-        self._vlad_cells.append(vfeats[m > 0].reshape(-1, vfeats.shape[2]))
-        if self.vocab is not None and self.vocab.needs_refresh(sum(len(x) for x in self._vlad_cells)):
-            self.vocab = Vocabulary.train(np.concatenate(self._vlad_cells), c.vlad_clusters)
-            self._tile_vlads = {}
+        self._insert(submap_id, d)
+        self._vlad_cells.append(d.vfeats[d.m > 0].reshape(-1, d.vfeats.shape[2]))
+        self._cap_vlad_cells()
+        if self.vocab is not None and self.vocab.needs_refresh(self._vlad_seen):
+            self._train_vocabulary()
         t["index_s"] = time.perf_counter() - t0
-        return StageResult(submap_id, layer, edges, candidates, t)
+        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok])
+
+    def relocate(self, submap_id: int, points_world: np.ndarray) -> DemLayer:
+        """Re-rasterise and re-index a submap whose pose the back-end changed."""
+        if self.index is None or self.grid is None:
+            raise RetrievalError("relocate before any submap was processed")
+        d = self._describe(submap_id, points_world)
+        self.index.remove_submap(submap_id)
+        self._insert(submap_id, d)
+        return d.layer
+
+    def tiles_of(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Live gallery tiles of a submap: keys [T,2] and descriptors [T,D]."""
+        return self.index.tiles_of(submap_id) if self.index is not None else (np.zeros((0, 2)), np.zeros((0, 0)))
+
+    def tile_centers_uv(self, keys: np.ndarray) -> np.ndarray:
+        """Canonical (u, v) of tile centres [T,2] from their keys (Iu, Iv)."""
+        return (np.asarray(keys, float) + 0.5) * self.grid.tile_size
+
+    def _insert(self, submap_id: int, d: _Described) -> None:
+        self.index.add(submap_id, d.keys[d.usable], d.tiles[d.usable])
+        self._tile_cells[submap_id] = (d.vfeats, d.usable, d.cpt)
+        self._tile_vlads.pop(submap_id, None)
+
+    def _vlad_count(self) -> int:
+        return sum(len(x) for x in self._vlad_cells)
+
+    def _cap_vlad_cells(self) -> None:
+        """Keep at most ``vlad_sample`` features for vocabulary training (RAM stays flat)."""
+        self._vlad_seen += len(self._vlad_cells[-1])
+        total = self._vlad_count()
+        if total > self.config.vlad_sample:
+            x = np.concatenate(self._vlad_cells)
+            keep = np.random.default_rng(len(self._tile_cells)).choice(total, self.config.vlad_sample, replace=False)
+            self._vlad_cells = [x[np.sort(keep)]]
+
+    def _train_vocabulary(self) -> None:
+        self.vocab = Vocabulary.train(np.concatenate(self._vlad_cells), self.config.vlad_clusters)
+        self.vocab.trained_on = max(self._vlad_seen, 1)
+        self._tile_vlads = {}
 
     def _vlads_of(self, submap_id: int) -> np.ndarray:
         if submap_id not in self._tile_vlads:
             vfeats, usable, cpt = self._tile_cells[submap_id]
             v = tile_vlads(vfeats, self.vocab, cpt, self.config.vlad_context_tiles)
             tr, tc = usable.shape
+            if len(self._tile_vlads) >= self.config.vlad_cache_submaps:
+                self._tile_vlads.pop(next(iter(self._tile_vlads)))
             self._tile_vlads[submap_id] = v[:tr, :tc][usable]
         return self._tile_vlads[submap_id]
 

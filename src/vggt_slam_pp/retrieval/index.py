@@ -53,6 +53,7 @@ class TileIndex:
         hnsw.hnsw.efSearch = self.config.ef_search
         self.index = faiss.IndexIDMap2(hnsw)
         self.keys = np.zeros((0, 3), np.int64)  # id -> (submap, Iu, Iv)
+        self.alive = np.zeros(0, bool)  # False for tiles of a re-rasterised layer (HNSW cannot delete)
 
     def __len__(self) -> int:
         return int(self.index.ntotal)
@@ -72,6 +73,20 @@ class TileIndex:
         self.index.add_with_ids(d, ids)
         keys = np.c_[np.full(len(d), submap_id, np.int64), np.asarray(tile_keys, np.int64).reshape(-1, 2)]
         self.keys = np.r_[self.keys, keys]
+        self.alive = np.r_[self.alive, np.ones(len(d), bool)]
+
+    def remove_submap(self, submap_id: int) -> int:
+        """Retire a submap's tiles (before re-inserting its re-rasterised layer); returns how many."""
+        dead = (self.keys[:, 0] == submap_id) & self.alive
+        self.alive[dead] = False
+        return int(dead.sum())
+
+    def tiles_of(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """The live tiles of a submap: keys [T,2] (Iu, Iv) and descriptors [T,dim]."""
+        ids = np.nonzero((self.keys[:, 0] == submap_id) & self.alive)[0]
+        if len(ids) == 0:
+            return np.zeros((0, 2), np.int64), np.zeros((0, self.dim), np.float32)
+        return self.keys[ids, 1:], np.stack([self.index.reconstruct(int(i)) for i in ids])
 
     def search(self, queries: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(similarities [Q,k], ids [Q,k]; -1 where fewer than k tiles)."""
@@ -83,8 +98,11 @@ class TileIndex:
         c = self.config
         if len(self) == 0 or len(chips) == 0:
             return []
-        sims, ids = self.search(chips, c.k)
+        dead = int((~self.alive).sum())
+        sims, ids = self.search(chips, c.k + min(dead, 4 * c.k))
         ok = ids >= 0
+        ok[ok] = self.alive[ids[ok]]
+        ok &= np.cumsum(ok, axis=1) <= c.k  # the k best live tiles per chip
         submaps = np.where(ok, self.keys[np.maximum(ids, 0), 0], -1)
         excluded = (submaps < 0) | (submaps >= query_submap - c.exclude_recent)
         sims = np.where(excluded, 0.0, np.maximum(sims, 0.0))
@@ -106,6 +124,7 @@ class TileIndex:
         faiss.write_index(self.index, str(folder / "tiles.faiss.tmp"))
         (folder / "tiles.faiss.tmp").replace(folder / "tiles.faiss")
         np.save(folder / "tile_keys.npy", self.keys)
+        np.save(folder / "tile_alive.npy", self.alive)
         meta = {"dim": self.dim, "encoder": self.encoder, "config": asdict(self.config), "ntotal": len(self)}
         (folder / "tiles.json").write_text(json.dumps(meta, indent=2))
 
@@ -119,6 +138,8 @@ class TileIndex:
             meta = json.loads((folder / "tiles.json").read_text())
             index = faiss.read_index(str(folder / "tiles.faiss"))
             keys = np.load(folder / "tile_keys.npy")
+            alive_file = folder / "tile_alive.npy"
+            alive = np.load(alive_file) if alive_file.is_file() else np.ones(len(keys), bool)
         except (OSError, ValueError, RuntimeError) as exc:
             raise RetrievalError(f"cannot read the tile index in {folder}: {exc}") from exc
         if dim is not None and meta["dim"] != dim:
@@ -130,6 +151,6 @@ class TileIndex:
         if index.ntotal != len(keys) or index.d != meta["dim"]:
             raise RetrievalError(f"the tile index in {folder} is inconsistent (ids vs keys); rebuild it")
         obj = cls(meta["dim"], IndexConfig(**meta["config"]), meta["encoder"])
-        obj.index, obj.keys = index, keys
+        obj.index, obj.keys, obj.alive = index, keys, alive
         faiss.downcast_index(index.index).hnsw.efSearch = obj.config.ef_search
         return obj

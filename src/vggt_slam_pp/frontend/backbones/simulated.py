@@ -10,7 +10,9 @@ Per submap ``k`` (frames 0..S-1, frame 0 defines the submap frame):
   monocular scale ambiguity that chaining turns into scale drift.
 
 Points are the noisy depths unprojected with the noisy poses, so each submap is self-consistent, as a
-real reconstruction is. Confidence is ``exp(-d / 20)`` (near points more confident). With all noise at
+real reconstruction is. Confidence is ``exp(-d / 100 - |e| / depth_noise)`` with ``e`` the relative depth
+error the point was given: the filter's lowest-25 % cut then removes the worst points, as a learned
+confidence aims to, not simply the far ones (which hold most of the structure). With all noise at
 zero the predictions are exact and odometry reproduces the ground truth. Random numbers come from
 ``default_rng([seed, first frame index])``, so a submap's noise does not depend on the run's history.
 """
@@ -79,10 +81,12 @@ class SimulatedBackbone(Backbone):
                 xi = np.r_[rng.normal(0, np.radians(n.rot_noise_deg), 3), rng.normal(0, n.trans_noise * dist, 3)]
                 T = se3_exp(xi) @ T
             depth = f.depth.astype(np.float64)
+            c = np.exp(-depth / 100.0)
             if n.depth_noise:
-                depth = depth * (1.0 + rng.normal(0.0, n.depth_noise, depth.shape))
+                rel = rng.normal(0.0, n.depth_noise, depth.shape)
+                depth = depth * (1.0 + rel)
+                c = c * np.exp(-np.abs(rel) / n.depth_noise)  # confidence tracks the error actually made
             K = f.intrinsics.K
-            c = np.exp(-depth / 20.0)
             p, w, x, k = dense_observations(se3_inverse(T), depth, c, K, np.eye(3), self.stride)
             T_scaled = T.copy()
             T_scaled[:3, 3] *= scale

@@ -1,0 +1,269 @@
+"""The back-end's synchronous core: covisibility -> loop registration -> Sim(3) pose graph (SPEC 3.8-3.12).
+
+:class:`Backend` owns the pose graph, the covisibility stage and the submap store. For every new submap
+(:class:`SubmapMessage`, points read from the :class:`SubmapStore`):
+
+1. its node enters the graph at ``T_world_prev T_prev_curr`` (the optimised previous pose), with the
+   odometry edge weighted by its alignment residual;
+2. its points (world frame, subsampled) go through the covisibility stage: DEM layer, descriptors,
+   HNSW voting, VLAD candidates;
+3. the best ``candidates_per_query`` candidates are registered and verified
+   (:func:`~vggt_slam_pp.backend.registration.register_loop`); accepted loops become robust edges,
+   rejected ones are kept with their reason;
+4. with a new loop the graph is optimised: globally when the loop closes further back than
+   ``far_loop_submaps``, otherwise over the window (the new submap, its loop partners and their
+   neighbours) with the rest fixed; at :meth:`finish`, globally;
+5. layers of submaps that moved by more than ``relocate_min_shift_tiles`` are re-rasterised and
+   re-indexed; a :class:`PoseSnapshot` is published.
+
+The same object runs inline (synchronous mode, tests) or inside the worker process
+(:mod:`vggt_slam_pp.backend.worker`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+
+from vggt_slam_pp.backend.graph import Edge, GraphConfig, PoseGraph
+from vggt_slam_pp.backend.registration import LoopResult, RegistrationConfig, mutual_matches, register_loop
+from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.frontend.types import OdometryEdge
+from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
+from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    encoder: str = "hog"  # "hog" (weight-free) or "dinov2"
+    encoder_weights: str | None = None  # dinov2: a path or hub name; None = the default resolution
+    covisibility: CovisibilityConfig = field(default_factory=CovisibilityConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    candidates_per_query: int = 3
+    proximity_candidates: int = 2  # also verify the nearest earlier submaps in the current estimate
+    proximity_radius_tiles: float = 10.0
+    far_loop_submaps: int = 10
+    window_neighbours: int = 1
+    dem_max_points: int = 200_000
+    registration_max_points: int = 20_000
+    relocate_min_shift_tiles: float = 0.25
+    cache_submaps: int = 8
+
+
+@dataclass(frozen=True)
+class SubmapMessage:
+    """A new submap for the back-end; its points (submap frame) are already in the store."""
+
+    submap_id: int
+    camera_centers: np.ndarray  # [S,3] submap frame
+    odometry: OdometryEdge | None  # from the previous submap (None for the first)
+
+
+@dataclass(frozen=True)
+class PoseSnapshot:
+    """Immutable view of the optimised poses after one back-end step."""
+
+    version: int
+    poses: MappingProxyType  # submap id -> T_world_submap [4,4] (read-only arrays)
+    loops_accepted: int
+    last_submap: int
+
+
+@dataclass
+class BackendResult:
+    poses: dict[int, np.ndarray]
+    odometry_poses: dict[int, np.ndarray]
+    edges: list[dict]
+    covisibility: list[dict]
+    loops: list[dict]  # every verified candidate, accepted or not, with its reason
+    seconds_per_submap: list[float]
+    timings: dict[str, float]
+    plane: dict | None
+    tile_size: float | None
+    mpp: float | None
+
+
+def _subsample(points: np.ndarray, n: int) -> np.ndarray:
+    if len(points) <= n:
+        return points
+    return points[np.linspace(0, len(points) - 1, n).astype(np.int64)]
+
+
+class Backend:
+    def __init__(self, config: BackendConfig, store: SubmapStore, encoder=None) -> None:
+        from vggt_slam_pp.retrieval.encoders import make_encoder
+
+        self.config = config
+        self.store = store
+        if encoder is None:
+            kwargs = {"weights": config.encoder_weights} if config.encoder == "dinov2" else {}
+            encoder = make_encoder(config.encoder, **kwargs)
+        self.stage = CovisibilityStage(encoder, config.covisibility)
+        self.graph = PoseGraph(config.graph)
+        self.odometry_poses: dict[int, np.ndarray] = {}
+        self.covisibility: list[dict] = []
+        self.loops: list[LoopResult] = []
+        self.seconds: list[float] = []
+        self.timings = {"covisibility_s": 0.0, "registration_s": 0.0, "optimization_s": 0.0, "relocate_s": 0.0}
+        self._extent: dict[int, np.ndarray] = {}  # 8 bounding-box corners per submap (submap frame)
+        self._layer_pose: dict[int, np.ndarray] = {}  # pose each layer was rasterised with
+        self._centroid: dict[int, np.ndarray] = {}  # point centroid per submap (submap frame)
+        self._version = 0
+
+    # -- the per-submap step --------------------------------------------------------------------
+    def add_submap(self, msg: SubmapMessage) -> PoseSnapshot:
+        t_start = time.perf_counter()
+        sid = msg.submap_id
+        points = self.store.get(sid)
+        e = msg.odometry
+        if e is None:
+            T = np.eye(4)
+            T_odo = np.eye(4)
+        else:
+            if e.prev not in self.graph.poses:
+                raise BackendError(f"odometry edge {e.prev}->{e.curr} refers to an unknown submap")
+            T = self.graph.poses[e.prev] @ e.T_prev_curr
+            T_odo = self.odometry_poses[e.prev] @ e.T_prev_curr
+        self.graph.add_node(sid, T)
+        self.odometry_poses[sid] = T_odo
+        if e is not None:
+            self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
+                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded), "odometry",
+                                     {"residual": e.residual, "degraded": e.degraded}))
+        if len(points):
+            self._centroid[sid] = points.mean(0)
+            lo, hi = points.min(0), points.max(0)
+            self._extent[sid] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                          for z in (lo[2], hi[2])])
+        accepted: list[LoopResult] = []
+        if len(points) >= 3:
+            t0 = time.perf_counter()
+            pw = transform_points(T, _subsample(points, self.config.dem_max_points))
+            res = self.stage.process(sid, pw, transform_points(T, msg.camera_centers))
+            self._layer_pose[sid] = T
+            self.covisibility += [{"query": c.query, "match": c.match, "score": c.score, "votes": c.votes}
+                                  for c in res.edges]
+            self.timings["covisibility_s"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            accepted = self._verify(sid, res, transform_points(T, _subsample(points,
+                                                                             self.config.registration_max_points)))
+            self.timings["registration_s"] += time.perf_counter() - t0
+        if accepted:
+            far = sid - min(r.match for r in accepted) > self.config.far_loop_submaps
+            window = None if far else self._window(sid, [r.match for r in accepted])
+            self._optimize(window)
+        self.seconds.append(time.perf_counter() - t_start)
+        return self.snapshot()
+
+    def _candidates(self, sid: int, res) -> list[tuple[int, float, float]]:
+        """(match, score, margin): the best ``candidates_per_query`` by place recognition (VLAD-ranked,
+        then covisibility order), plus the ``proximity_candidates`` earlier submaps whose point centroid
+        is nearest in the current estimate (within ``proximity_radius_tiles``): retrieval finds loops the
+        estimate has drifted away from, proximity the ones it has not; verification decides for both."""
+        ranked = [(c.match, c.score) for c in res.candidates]
+        seen = {m for m, _ in ranked}
+        ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
+        out = []
+        for k, (m, s) in enumerate(ranked[: self.config.candidates_per_query]):
+            nxt = ranked[k + 1][1] if k + 1 < len(ranked) else 0.0
+            out.append((m, s, s - nxt))
+        if self.config.proximity_candidates and sid in self._centroid:
+            here = transform_points(self.graph.poses[sid], self._centroid[sid][None])[0]
+            old = [j for j in self._centroid if j < sid - self.stage.config.index.exclude_recent]
+            if old:
+                d = np.array([np.linalg.norm(transform_points(self.graph.poses[j], self._centroid[j][None])[0] - here)
+                              for j in old])
+                radius = self.config.proximity_radius_tiles * self.stage.grid.tile_size
+                taken = {m for m, _, _ in out}
+                for k in np.argsort(d)[: self.config.proximity_candidates]:
+                    if d[k] <= radius and old[k] not in taken:
+                        out.append((old[k], 0.0, np.inf))
+        return out
+
+    def _verify(self, sid: int, res, points_world: np.ndarray) -> list[LoopResult]:
+        grid = self.stage.grid
+        accepted = []
+        for match, score, margin in self._candidates(sid, res):
+            keys, desc = self.stage.tiles_of(match)
+            ia, ib = mutual_matches(res.chip_descriptors, desc)
+            chip_uv = self.stage.tile_centers_uv(res.chip_keys[ia])
+            tile_uv = self.stage.tile_centers_uv(keys[ib])
+            T_m = self.graph.poses[match]
+            pm = transform_points(T_m, _subsample(self.store.get(match), self.config.registration_max_points))
+            r = register_loop(sid, match, points_world, pm, grid.plane, grid.tile_size, self.graph.poses[sid], T_m,
+                              chip_uv, tile_uv, score, margin, self.config.registration)
+            self.loops.append(r)
+            log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, residual %.3g, guess %s)",
+                     sid, match, r.reason, r.overlap, r.structure_overlap, r.residual, r.guess)
+            if r.accepted:
+                s_m, _, _ = decompose_sim3(T_m)
+                g = self.config.graph
+                trans = max(r.residual, 0.02 * grid.tile_size) / float(s_m)
+                sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
+                self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict()))
+                accepted.append(r)
+        return accepted
+
+    def _window(self, sid: int, matches: list[int]) -> set[int]:
+        k = self.config.window_neighbours
+        window = set()
+        for n in [sid, *matches]:
+            window.update(range(n - k, n + k + 1))
+        return {n for n in window if n in self.graph.poses}
+
+    def _optimize(self, window: set[int] | None) -> None:
+        t0 = time.perf_counter()
+        before = {i: T.copy() for i, T in self.graph.poses.items()}
+        self.graph.optimize(window)
+        self.timings["optimization_s"] += time.perf_counter() - t0
+        self._version += 1
+        t0 = time.perf_counter()
+        thr = self.config.relocate_min_shift_tiles * (self.stage.grid.tile_size if self.stage.grid else 1.0)
+        for i, T in self.graph.poses.items():
+            if i not in self._layer_pose or i not in self._extent:
+                continue
+            c = self._extent[i]
+            if np.abs(transform_points(T, c) - transform_points(before[i], c)).max() < 1e-12:
+                continue
+            shift = np.linalg.norm(transform_points(T, c) - transform_points(self._layer_pose[i], c), axis=1).max()
+            if shift >= thr:
+                self.stage.relocate(i, transform_points(T, _subsample(self.store.get(i), self.config.dem_max_points)))
+                self._layer_pose[i] = T.copy()
+        self.timings["relocate_s"] += time.perf_counter() - t0
+
+    # -- outputs --------------------------------------------------------------------------------
+    def snapshot(self) -> PoseSnapshot:
+        poses = {}
+        for i, T in self.graph.poses.items():
+            a = T.copy()
+            a.flags.writeable = False
+            poses[i] = a
+        return PoseSnapshot(self._version, MappingProxyType(poses), sum(r.accepted for r in self.loops),
+                            max(self.graph.poses) if self.graph.poses else -1)
+
+    def finish(self) -> BackendResult:
+        """Final global optimisation (when there is any loop) and the result."""
+        if any(e.kind == "loop" for e in self.graph.edges):
+            self._optimize(None)
+        weights = iter(self.graph.loop_weights())
+        edges = []
+        for e in self.graph.edges:
+            d = {"from": e.i, "to": e.j, "kind": e.kind, "T": e.T_ij.tolist(), "sigmas": e.sigmas.tolist(), **e.info}
+            if e.kind == "loop":
+                d["robust_weight"] = next(weights)
+            edges.append(d)
+        grid = self.stage.grid
+        return BackendResult(
+            poses={i: T.copy() for i, T in self.graph.poses.items()},
+            odometry_poses=dict(self.odometry_poses), edges=edges, covisibility=list(self.covisibility),
+            loops=[r.to_dict() for r in self.loops], seconds_per_submap=list(self.seconds),
+            timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
+            tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None)

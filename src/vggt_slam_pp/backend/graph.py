@@ -1,0 +1,176 @@
+"""The Sim(3) pose graph over submaps, solved with GTSAM (SPEC 3.11).
+
+Nodes are ``T_world_submap`` (our convention: ``x_world = s R x_submap + t``). Edges measure
+``T_i^-1 T_j`` (``T_ij``, submap j in submap i's frame): odometry edges with a Gaussian noise model
+from their alignment residual, loop edges with a robust kernel (Cauchy by default: measured to reject a
+bad loop a Huber kernel let through). The first submap has a prior.
+
+GTSAM's ``Similarity3(R, t_g, s)`` maps ``p -> s (R p + t_g)``, so ``t_g = t / s``; its tangent vector
+is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below.
+
+:meth:`PoseGraph.optimize` solves either every node (global) or a window of nodes with the others held
+fixed (their factors become priors of negligible sigma): the cheap per-submap update.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, sim3_log
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GraphConfig:
+    robust_kernel: str = "cauchy"  # "cauchy", "huber" or "none" (loop factors)
+    kernel_width: float = 1.0  # in whitened units (sigmas)
+    odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
+    odometry_scale_sigma: float = 0.01  # log-scale
+    odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
+    degraded_inflation: float = 100.0
+    loop_rot_sigma: float = 0.02
+    loop_scale_sigma: float = 0.02
+    max_iterations: int = 100
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A relative measurement ``T_ij`` between nodes i and j, with 7 sigmas ``[rot 3, trans 3, scale]``."""
+
+    i: int
+    j: int
+    T_ij: np.ndarray
+    sigmas: np.ndarray
+    kind: str  # "odometry" or "loop"
+    info: dict = field(default_factory=dict)
+
+
+def to_gtsam(T: np.ndarray):
+    import gtsam
+
+    s, R, t = decompose_sim3(T)
+    return gtsam.Similarity3(gtsam.Rot3(R), np.asarray(t, float) / float(s), float(s))
+
+
+def from_gtsam(S) -> np.ndarray:
+    return make_sim3(S.scale(), S.rotation().matrix(), S.scale() * np.asarray(S.translation()))
+
+
+def _key(i: int) -> int:
+    import gtsam
+
+    return gtsam.symbol("s", i)
+
+
+class PoseGraph:
+    """Owns the poses and edges; not thread-safe (the back-end worker alone touches it)."""
+
+    def __init__(self, config: GraphConfig | None = None) -> None:
+        self.config = config or GraphConfig()
+        self.poses: dict[int, np.ndarray] = {}
+        self.edges: list[Edge] = []
+        self.last_solve: dict = {}
+
+    # -- building -------------------------------------------------------------------------------
+    def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
+        if i in self.poses:
+            raise BackendError(f"submap {i} is already in the pose graph")
+        if not np.isfinite(T_world_submap).all():
+            raise BackendError(f"submap {i}: non-finite initial pose")
+        self.poses[i] = np.asarray(T_world_submap, float).copy()
+
+    def odometry_sigmas(self, T_ij: np.ndarray, residual: float, degraded: bool = False) -> np.ndarray:
+        c = self.config
+        s, _, t = decompose_sim3(T_ij)
+        step = float(np.linalg.norm(t))
+        trans = c.odometry_trans_sigma_rel * step + max(float(residual), 1e-4 * max(step, 1e-3))
+        sig = np.r_[[c.odometry_rot_sigma] * 3, [trans / max(float(s), 1e-9)] * 3, c.odometry_scale_sigma]
+        return sig * (c.degraded_inflation if degraded else 1.0)
+
+    def add_edge(self, edge: Edge) -> None:
+        for n in (edge.i, edge.j):
+            if n not in self.poses:
+                raise BackendError(f"edge {edge.i}->{edge.j}: submap {n} is not in the pose graph")
+        if edge.sigmas.shape != (7,) or not np.all(edge.sigmas > 0):
+            raise BackendError(f"edge {edge.i}->{edge.j}: sigmas must be 7 positive numbers")
+        self.edges.append(edge)
+
+    # -- solving --------------------------------------------------------------------------------
+    def _noise(self, edge: Edge):
+        import gtsam
+
+        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(edge.sigmas, float))
+        if edge.kind != "loop" or self.config.robust_kernel == "none":
+            return base
+        k = self.config.kernel_width
+        est = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
+        if self.config.robust_kernel not in est:
+            raise BackendError(f"unknown robust kernel {self.config.robust_kernel!r}; use cauchy, huber or none")
+        return gtsam.noiseModel.Robust.Create(est[self.config.robust_kernel].Create(k), base)
+
+    def optimize(self, window: set[int] | None = None) -> dict[int, np.ndarray]:
+        """Optimise the nodes in ``window`` (all when None), holding the others fixed.
+
+        Returns the new poses of the optimised nodes (also stored in :attr:`poses`).
+        """
+        import gtsam
+
+        t0 = time.perf_counter()
+        if not self.poses:
+            return {}
+        free = set(self.poses) if window is None else {i for i in window if i in self.poses}
+        first = min(self.poses)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        used: set[int] = set(free)
+        for e in self.edges:
+            if e.i in free or e.j in free:
+                graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), self._noise(e)))
+                used.update((e.i, e.j))
+        fixed = used - free
+        if first in used:
+            fixed.add(first)
+        tight = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
+        for i in sorted(fixed):
+            graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))
+        for i in sorted(used):
+            values.insert(_key(i), to_gtsam(self.poses[i]))
+        if not fixed:  # a window disconnected from the anchor: pin its oldest node
+            graph.add(gtsam.PriorFactorSimilarity3(_key(min(used)), to_gtsam(self.poses[min(used)]), tight))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.config.max_iterations)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        err0 = graph.error(values)
+        result = opt.optimize()
+        out = {}
+        for i in free:
+            if i in used:
+                T = from_gtsam(result.atSimilarity3(_key(i)))
+                if not np.isfinite(T).all():
+                    raise BackendError(f"pose-graph optimisation produced a non-finite pose for submap {i}")
+                out[i] = T
+        self.poses.update(out)
+        self.last_solve = {"nodes": len(used), "free": len(out), "factors": graph.size(),
+                           "error_before": float(err0), "error_after": float(graph.error(result)),
+                           "iterations": int(opt.iterations()), "seconds": time.perf_counter() - t0,
+                           "global": window is None}
+        return out
+
+    def loop_weights(self) -> list[float]:
+        """Robust weight (0..1) of every loop edge at the current poses, in edge order (for reports)."""
+        out = []
+        k, kernel = self.config.kernel_width, self.config.robust_kernel
+        for e in self.edges:
+            if e.kind != "loop":
+                continue
+            r = sim3_log(sim3_inverse(e.T_ij) @ sim3_inverse(self.poses[e.i]) @ self.poses[e.j])
+            d = float(np.linalg.norm(r / e.sigmas))  # same [omega, u, lambda] order as the sigmas
+            out.append(1.0 / (1.0 + (d / k) ** 2) if kernel == "cauchy" else (1.0 if d <= k or kernel == "none"
+                                                                              else k / d))
+        return out

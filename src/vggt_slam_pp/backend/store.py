@@ -1,0 +1,50 @@
+"""Submap point clouds on disk, loaded on demand (SPEC 3.12: bounded memory).
+
+Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``; a small
+LRU cache holds the active window. Both the front-end process (writer) and the back-end worker process
+(reader) open the same folder.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from vggt_slam_pp.errors import BackendError
+
+
+class SubmapStore:
+    def __init__(self, folder: str | Path, cache_size: int = 8) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.cache_size = cache_size
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def path(self, submap_id: int) -> Path:
+        return self.folder / f"{submap_id:06d}.npy"
+
+    def put(self, submap_id: int, points: np.ndarray) -> None:
+        pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        tmp = self.folder / f"{submap_id:06d}.tmp.npy"
+        np.save(tmp, pts)
+        tmp.replace(self.path(submap_id))
+        self._remember(submap_id, pts)
+
+    def get(self, submap_id: int) -> np.ndarray:
+        if submap_id in self._cache:
+            self._cache.move_to_end(submap_id)
+            return self._cache[submap_id]
+        try:
+            pts = np.load(self.path(submap_id))
+        except (OSError, ValueError) as exc:
+            raise BackendError(f"cannot read the points of submap {submap_id} from {self.folder}: {exc}") from exc
+        self._remember(submap_id, pts)
+        return pts
+
+    def _remember(self, submap_id: int, pts: np.ndarray) -> None:
+        self._cache[submap_id] = pts
+        self._cache.move_to_end(submap_id)
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)

@@ -91,8 +91,9 @@ def test_synth_then_info_and_demo(tmp_path, capsys):
     assert code == 0 and "depth: yes; intrinsics: yes; ground truth: 5 frames matched" in out
     code, out, _ = _run(capsys, "demo", "--out", tmp_path / "demo", "--frames", 20, "--width", 64, "--height", 48)
     assert code == 0 and "ATE" in out
-    report = json.loads((tmp_path / "demo" / "report.json").read_text())
-    assert report["frames"] == 20 and np.isfinite(report["ate_rmse_simulated_odometry"])
+    report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
+    assert report["frames"] == 20 and np.isfinite(report["ate_rmse_odometry"]) and np.isfinite(report["ate_rmse"])
+    assert report["loops_accepted"] >= 0 and (tmp_path / "demo" / "run" / "keyframes.txt").is_file()
 
 
 def test_module_entry_point_exit_code(tmp_path):
@@ -129,7 +130,7 @@ def test_run_command_simulated_and_bad_input(tmp_path, capsys):
     write_sequence(make_scene("figure8", frames=40, width=160, height=120, seed=1), seq)
     code, out, _ = _run(capsys, "run", "--input", seq, "--backbone", "simulated", "--noise", "zero",
                         "--out", tmp_path / "out", "--tau", "10", "--submap-size", "4", "-q", "--no-backend")
-    assert code == 0 and "odometry ATE rmse" in out
+    assert code == 0 and "ATE rmse (Sim(3)-aligned, keyframes): odometry" in out
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["frames"] == 40 and report["submaps"] >= 2 and report["ate_rmse_odometry"] < 1e-6
     assert {"keyframes_s", "backbone_s", "odometry_s"} <= set(report["timings"]) and report["peak_memory_mb"] > 0

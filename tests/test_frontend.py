@@ -202,7 +202,7 @@ def test_simulated_default_noise_drifts_with_distance(tmp_path, loop_sequence):
     q = len(err) // 4
     assert err[q:2 * q].mean() > 5 * err[:5].mean()
     travelled = np.r_[0, np.cumsum(np.linalg.norm(np.diff(gt.positions, axis=0), axis=1))]
-    assert np.corrcoef(travelled[:2 * q], err[:2 * q])[0, 1] > 0.7  # grows with distance (first half)
+    assert np.corrcoef(travelled[:2 * q], err[:2 * q])[0, 1] > 0.6  # grows with distance (first half)
 
 
 class _Broken(Backbone):

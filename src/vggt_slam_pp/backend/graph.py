@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class GraphConfig:
     robust_kernel: str = "cauchy"  # "cauchy", "huber" or "none" (loop factors)
-    kernel_width: float = 1.0  # in whitened units (sigmas)
+    kernel_width: float = 3.0  # in whitened units (sigmas); 1 rejected true loops after long drift
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
     odometry_scale_sigma: float = 0.01  # log-scale
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
@@ -89,7 +89,8 @@ class PoseGraph:
         c = self.config
         s, _, t = decompose_sim3(T_ij)
         step = float(np.linalg.norm(t))
-        trans = c.odometry_trans_sigma_rel * step + max(float(residual), 1e-4 * max(step, 1e-3))
+        residual = float(residual) if np.isfinite(residual) else max(step, 1.0)  # unknown: as large as the step
+        trans = c.odometry_trans_sigma_rel * step + max(residual, 1e-4 * max(step, 1e-3), 1e-9)
         sig = np.r_[[c.odometry_rot_sigma] * 3, [trans / max(float(s), 1e-9)] * 3, c.odometry_scale_sigma]
         return sig * (c.degraded_inflation if degraded else 1.0)
 
@@ -102,17 +103,15 @@ class PoseGraph:
         self.edges.append(edge)
 
     # -- solving --------------------------------------------------------------------------------
-    def _noise(self, edge: Edge):
+    def _noise(self, edge: Edge, kernel: str):
         import gtsam
 
         base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(edge.sigmas, float))
-        if edge.kind != "loop" or self.config.robust_kernel == "none":
+        if edge.kind != "loop" or kernel == "none":
             return base
         k = self.config.kernel_width
         est = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
-        if self.config.robust_kernel not in est:
-            raise BackendError(f"unknown robust kernel {self.config.robust_kernel!r}; use cauchy, huber or none")
-        return gtsam.noiseModel.Robust.Create(est[self.config.robust_kernel].Create(k), base)
+        return gtsam.noiseModel.Robust.Create(est[kernel].Create(k), base)
 
     def optimize(self, window: set[int] | None = None) -> dict[int, np.ndarray]:
         """Optimise the nodes in ``window`` (all when None), holding the others fixed.
@@ -124,30 +123,44 @@ class PoseGraph:
         t0 = time.perf_counter()
         if not self.poses:
             return {}
+        kernel = self.config.robust_kernel
+        if kernel not in ("cauchy", "huber", "none"):
+            raise BackendError(f"unknown robust kernel {kernel!r}; use cauchy, huber or none")
+        # Cauchy is not convex: a true loop closing a large drift starts far out in its tail and would
+        # be ignored. Continuation: solve with Huber (convex) first, then with Cauchy from there; a
+        # wrong loop keeps a large residual and loses its weight in the second solve.
+        stages = ["huber", "cauchy"] if kernel == "cauchy" else [kernel]
         free = set(self.poses) if window is None else {i for i in window if i in self.poses}
         first = min(self.poses)
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
+        loop_edges = [e for e in self.edges if e.i in free or e.j in free]
         used: set[int] = set(free)
-        for e in self.edges:
-            if e.i in free or e.j in free:
-                graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), self._noise(e)))
-                used.update((e.i, e.j))
+        for e in loop_edges:
+            used.update((e.i, e.j))
         fixed = used - free
         if first in used:
             fixed.add(first)
+        if not fixed:  # a window disconnected from the anchor: pin its oldest node
+            fixed.add(min(used))
         tight = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
-        for i in sorted(fixed):
-            graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))
+        values = gtsam.Values()
         for i in sorted(used):
             values.insert(_key(i), to_gtsam(self.poses[i]))
-        if not fixed:  # a window disconnected from the anchor: pin its oldest node
-            graph.add(gtsam.PriorFactorSimilarity3(_key(min(used)), to_gtsam(self.poses[min(used)]), tight))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(self.config.max_iterations)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        err0 = graph.error(values)
-        result = opt.optimize()
+        err0 = None
+        iterations = 0
+        for stage in stages:
+            graph = gtsam.NonlinearFactorGraph()
+            for e in loop_edges:
+                graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), self._noise(e, stage)))
+            for i in sorted(fixed):
+                graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))
+            if err0 is None:
+                err0 = graph.error(values)
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(self.config.max_iterations)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            values = opt.optimize()
+            iterations += int(opt.iterations())
+        result = values
         out = {}
         for i in free:
             if i in used:
@@ -158,7 +171,7 @@ class PoseGraph:
         self.poses.update(out)
         self.last_solve = {"nodes": len(used), "free": len(out), "factors": graph.size(),
                            "error_before": float(err0), "error_after": float(graph.error(result)),
-                           "iterations": int(opt.iterations()), "seconds": time.perf_counter() - t0,
+                           "iterations": iterations, "seconds": time.perf_counter() - t0,
                            "global": window is None}
         return out
 

@@ -206,7 +206,7 @@ class Backend:
             if r.accepted:
                 s_m, _, _ = decompose_sim3(T_m)
                 g = self.config.graph
-                trans = max(r.residual, 0.02 * grid.tile_size) / float(s_m)
+                trans = max(r.residual, g.loop_trans_sigma_tiles * grid.tile_size) / float(s_m)
                 sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
                 self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict()))
                 accepted.append(r)

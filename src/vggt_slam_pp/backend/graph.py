@@ -29,13 +29,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class GraphConfig:
     robust_kernel: str = "cauchy"  # "cauchy", "huber" or "none" (loop factors)
-    kernel_width: float = 3.0  # in whitened units (sigmas); 1 rejected true loops after long drift
+    kernel_width: float = 1.0  # in whitened units (sigmas)
+    continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
     odometry_scale_sigma: float = 0.01  # log-scale
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
     degraded_inflation: float = 100.0
     loop_rot_sigma: float = 0.02
     loop_scale_sigma: float = 0.02
+    loop_trans_sigma_tiles: float = 0.02  # floor of a loop's translation sigma, in tiles (ICP along a
+    # street of facades is weakly constrained along the street: the RMS residual understates that)
     max_iterations: int = 100
 
 
@@ -126,10 +129,11 @@ class PoseGraph:
         kernel = self.config.robust_kernel
         if kernel not in ("cauchy", "huber", "none"):
             raise BackendError(f"unknown robust kernel {kernel!r}; use cauchy, huber or none")
-        # Cauchy is not convex: a true loop closing a large drift starts far out in its tail and would
-        # be ignored. Continuation: solve with Huber (convex) first, then with Cauchy from there; a
-        # wrong loop keeps a large residual and loses its weight in the second solve.
-        stages = ["huber", "cauchy"] if kernel == "cauchy" else [kernel]
+        # Cauchy is not convex: a true loop closing a large drift starts far out in its tail and is
+        # ignored. Continuation (optional) solves with Huber (convex) first, then with Cauchy from there;
+        # a wrong loop keeps a large residual and loses its weight in the second solve. On the demo it
+        # made the result worse (see docs/backend.md), so it is off by default.
+        stages = ["huber", "cauchy"] if kernel == "cauchy" and self.config.continuation else [kernel]
         free = set(self.poses) if window is None else {i for i in window if i in self.poses}
         first = min(self.poses)
         loop_edges = [e for e in self.edges if e.i in free or e.j in free]

@@ -22,9 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from vggt_slam_pp.backend.backend import BackendConfig, BackendResult
+from vggt_slam_pp.backend.backend import BackendResult
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import DemGrid, GroundPlane, export_dem, rasterize
+from vggt_slam_pp.dem.images import height_ramp
+from vggt_slam_pp.dem.map import fuse_layers
 from vggt_slam_pp.errors import EvaluationError, VggtSlamError
 from vggt_slam_pp.frontend.frontend import FrontendResult
 from vggt_slam_pp.geometry.lie import transform_points
@@ -34,7 +36,7 @@ log = logging.getLogger(__name__)
 
 
 def write_backend_outputs(out: Path, source, result: FrontendResult, backend: BackendResult, store: SubmapStore,
-                          config: BackendConfig, ply_points_per_submap: int = 20_000) -> dict:
+                          ply_points_per_submap: int = 20_000) -> dict:
     out = Path(out)
     corrected = dataclasses.replace(result, T_world_submap=[backend.poses[sm.id] for sm in result.submaps])
     kf, kf_odo = corrected.keyframe_trajectory(), result.keyframe_trajectory()
@@ -78,24 +80,21 @@ def _write_graph(path: Path, result: FrontendResult, backend: BackendResult) -> 
              "loop_candidates": backend.loops,
              "rejected": [c for c in backend.loops if not c["accepted"]],
              "plane": backend.plane, "tile_size": backend.tile_size, "mpp": backend.mpp}
-    atomic_write_text(path, json.dumps(graph, indent=1, default=_jsonable))
+    atomic_write_text(path, json.dumps(graph, indent=1, default=json_default))
 
 
-def _jsonable(o):
+def json_default(o):
+    """``json.dumps(default=...)`` for numpy values (arrays, numpy scalars); anything else as text."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
-    if isinstance(o, float) and not np.isfinite(o):
-        return None
     return str(o)
 
 
 def _height_colors(h: np.ndarray) -> np.ndarray:
     lo, hi = np.percentile(h, [1, 99]) if len(h) else (0.0, 1.0)
-    t = np.clip((h - lo) / max(hi - lo, 1e-9), 0, 1)[:, None]
-    low, high = np.array([240, 220, 90], float), np.array([20, 90, 30], float)
-    return ((1 - t) * low + t * high).astype(np.uint8)
+    return height_ramp(np.clip((h - lo) / max(hi - lo, 1e-9), 0, 1)).astype(np.uint8)
 
 
 def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store: SubmapStore, per_submap: int) -> None:
@@ -118,16 +117,8 @@ def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store:
     cloud = np.concatenate(clouds)
     colors = _height_colors(plane.to_canonical(cloud)[:, 2])
     _write_ply(out / "map.ply", cloud, colors)
-    u0 = min(o[0] for o, _ in layers)
-    v0 = min(o[1] for o, _ in layers)
-    u1 = max(o[0] + h.shape[1] for o, h in layers)
-    v1 = max(o[1] + h.shape[0] for o, h in layers)
-    fused = np.full((v1 - v0, u1 - u0), -np.inf, np.float32)
-    for (u, v), h in layers:
-        view = fused[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]]
-        np.fmax(view, h.astype(np.float32), out=view)
-    fused[~np.isfinite(fused)] = np.nan
-    export_dem(out / "dem", fused, grid.mpp, plane, (u0, v0))
+    fused, origin = fuse_layers(layers)
+    export_dem(out / "dem", fused, grid.mpp, plane, origin)
 
 
 def _write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:

@@ -40,6 +40,7 @@ from vggt_slam_pp.frontend.odometry import chain
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
+from vggt_slam_pp.outputs import json_default, write_backend_outputs
 
 log = logging.getLogger(__name__)
 
@@ -152,15 +153,12 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     if result is not None:
         _write_trajectories(out, result)
     if result is not None and backend_result is not None:
-        from vggt_slam_pp.outputs import write_backend_outputs
-
-        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps"),
-                                            config.backend_config))
+        report.update(write_backend_outputs(out, source, result, backend_result, backend.store))
         if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
             report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
     report["frontend_fps"] = (len(result.decisions) / max(total - feeder.seconds, 1e-9)) if result else None
     report["peak_rss_mb"] = _peak_rss_mb()
-    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if error is not None:
         raise error
     return report
@@ -257,11 +255,3 @@ def _report(source: FrameSource, config: RunConfig, result: FrontendResult | Non
         if ate_all:
             report["ate_rmse_odometry_all_frames"] = ate_all["rmse"]
     return report
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)

@@ -230,10 +230,10 @@ class Backend:
         for i, T in self.graph.poses.items():
             if i not in self._layer_pose or i not in self._extent:
                 continue
-            c = self._extent[i]
-            if np.abs(transform_points(T, c) - transform_points(before[i], c)).max() < 1e-12:
+            now = transform_points(T, self._extent[i])
+            if np.abs(now - transform_points(before[i], self._extent[i])).max() < 1e-12:
                 continue
-            shift = np.linalg.norm(transform_points(T, c) - transform_points(self._layer_pose[i], c), axis=1).max()
+            shift = np.linalg.norm(now - transform_points(self._layer_pose[i], self._extent[i]), axis=1).max()
             if shift >= thr:
                 self.stage.relocate(i, transform_points(T, _subsample(self.store.get(i), self.config.dem_max_points)))
                 self._layer_pose[i] = T.copy()

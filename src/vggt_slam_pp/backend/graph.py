@@ -136,9 +136,9 @@ class PoseGraph:
         stages = ["huber", "cauchy"] if kernel == "cauchy" and self.config.continuation else [kernel]
         free = set(self.poses) if window is None else {i for i in window if i in self.poses}
         first = min(self.poses)
-        loop_edges = [e for e in self.edges if e.i in free or e.j in free]
+        touching = [e for e in self.edges if e.i in free or e.j in free]
         used: set[int] = set(free)
-        for e in loop_edges:
+        for e in touching:
             used.update((e.i, e.j))
         fixed = used - free
         if first in used:
@@ -153,7 +153,7 @@ class PoseGraph:
         iterations = 0
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
-            for e in loop_edges:
+            for e in touching:
                 graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), self._noise(e, stage)))
             for i in sorted(fixed):
                 graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))

@@ -73,6 +73,13 @@ def encoder_image(heights: np.ndarray, alpha_edge: float = 0.95,
     return img.astype(np.float32)
 
 
+def height_ramp(t: np.ndarray) -> np.ndarray:
+    """Normalised heights [...] in [0,1] -> RGB [..., 3] float: yellow (ground) to dark green (high)."""
+    low, high = np.array([240, 220, 90], float), np.array([20, 90, 30], float)
+    t = np.asarray(t, float)[..., None]
+    return (1 - t) * low + t * high
+
+
 def hillshade_rgb(heights: np.ndarray, azimuth_deg: float = 315.0, altitude_deg: float = 45.0,
                   mpp: float = 1.0) -> np.ndarray:
     """Colour image for people [H,W,3] uint8: yellow (ground) to dark green (high), Lambertian hillshade;
@@ -87,9 +94,7 @@ def hillshade_rgb(heights: np.ndarray, azimuth_deg: float = 315.0, altitude_deg:
     az, alt = np.radians(azimuth_deg), np.radians(altitude_deg)
     light = np.array([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az), np.sin(alt)])
     shade = np.clip(normal @ light, 0.0, 1.0)
-    low, high = np.array([240, 220, 90], float), np.array([20, 90, 30], float)  # yellow -> dark green
-    t = np.nan_to_num(n, nan=0.0)[..., None]
-    rgb = ((1 - t) * low + t * high) * (0.35 + 0.65 * shade[..., None])
+    rgb = height_ramp(np.nan_to_num(n, nan=0.0)) * (0.35 + 0.65 * shade[..., None])
     rgb[~valid] = 255
     return np.clip(rgb, 0, 255).astype(np.uint8)
 

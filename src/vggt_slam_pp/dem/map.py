@@ -64,16 +64,22 @@ class DemMap:
         """Global heights [H,W] (max over layers, NaN empty) and its origin pixel (iu, iv)."""
         if not self.entries:
             raise DemError("the DEM map is empty")
-        layers = [e.layer for e in self.entries.values()]
-        u0 = min(layer.origin_px[0] for layer in layers)
-        v0 = min(layer.origin_px[1] for layer in layers)
-        u1 = max(layer.origin_px[0] + layer.heights.shape[1] for layer in layers)
-        v1 = max(layer.origin_px[1] + layer.heights.shape[0] for layer in layers)
-        out = np.full((v1 - v0, u1 - u0), -np.inf, np.float32)
-        for layer in layers:
-            du, dv = layer.origin_px[0] - u0, layer.origin_px[1] - v0
-            H, W = layer.heights.shape
-            view = out[dv:dv + H, du:du + W]
-            np.fmax(view, layer.heights, out=view)
-        out[~np.isfinite(out)] = np.nan
-        return out, (u0, v0)
+        return fuse_layers((e.layer.origin_px, e.layer.heights) for e in self.entries.values())
+
+
+def fuse_layers(layers) -> tuple[np.ndarray, tuple[int, int]]:
+    """Max over layers given as (origin_px (iu, iv), heights [H,W]) -> (heights [H,W] float32, NaN empty;
+    origin pixel). Layers may be any float dtype (e.g. float16 when stored compactly)."""
+    layers = list(layers)
+    if not layers:
+        raise DemError("no DEM layers to fuse")
+    u0 = min(o[0] for o, _ in layers)
+    v0 = min(o[1] for o, _ in layers)
+    u1 = max(o[0] + h.shape[1] for o, h in layers)
+    v1 = max(o[1] + h.shape[0] for o, h in layers)
+    out = np.full((v1 - v0, u1 - u0), -np.inf, np.float32)
+    for (u, v), h in layers:
+        view = out[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]]
+        np.fmax(view, h.astype(np.float32, copy=False), out=view)
+    out[~np.isfinite(out)] = np.nan
+    return out, (u0, v0)

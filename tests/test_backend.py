@@ -146,13 +146,28 @@ def test_submap_store_round_trip_and_bounded_cache(tmp_path, rng):
         reader.get(99)
 
 
-def test_backend_failure_surfaces_and_outputs_remain(tmp_path, monkeypatch):
-    from vggt_slam_pp.backend import backend as B
-    from vggt_slam_pp.io import open_source
-    from vggt_slam_pp.pipeline import RunConfig, run
+@pytest.fixture(scope="module")
+def loop_sequence(tmp_path_factory):
     from vggt_slam_pp.synthetic import make_scene, write_sequence
 
-    write_sequence(make_scene("loop", frames=40, width=96, height=72, seed=1), tmp_path / "seq")
+    folder = tmp_path_factory.mktemp("loopseq") / "seq"
+    write_sequence(make_scene("loop", frames=40, width=96, height=72, seed=1), folder)
+    return folder
+
+
+def _small_config(**backend):
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.frontend.frontend import FrontendConfig
+    from vggt_slam_pp.pipeline import RunConfig
+
+    return RunConfig(frontend=FrontendConfig(submap_size=3), backend_config=BackendConfig(**backend))
+
+
+def test_backend_failure_surfaces_and_outputs_remain(loop_sequence, tmp_path, monkeypatch):
+    from vggt_slam_pp.backend import backend as B
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import run
+
     original = B.Backend.add_submap
 
     def failing(self, msg):
@@ -161,11 +176,59 @@ def test_backend_failure_surfaces_and_outputs_remain(tmp_path, monkeypatch):
         return original(self, msg)
 
     monkeypatch.setattr(B.Backend, "add_submap", failing)
-    from vggt_slam_pp.frontend.frontend import FrontendConfig
-
-    config = RunConfig(frontend=FrontendConfig(submap_size=3))
     with pytest.raises(BackendError, match="injected"):
-        run(open_source(tmp_path / "seq"), config, tmp_path / "out")
+        run(open_source(loop_sequence), _small_config(worker="inline"), tmp_path / "out")
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert "injected" in report["error"]
     assert (tmp_path / "out" / "keyframes_odometry.txt").is_file()
+    # keyframes.txt holds the last snapshot: the submaps 0..2 the back-end finished before failing
+    corrected = np.loadtxt(tmp_path / "out" / "keyframes.txt")
+    odometry = np.loadtxt(tmp_path / "out" / "keyframes_odometry.txt")
+    assert 0 < len(corrected) < len(odometry)
+
+
+def test_worker_process_matches_inline_and_publishes_snapshots(loop_sequence, tmp_path):
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import run
+
+    reports = {mode: run(open_source(loop_sequence), _small_config(worker=mode), tmp_path / mode)
+               for mode in ("inline", "process")}
+    assert reports["process"]["backend_mode"] == "process" and reports["inline"]["backend_mode"] == "inline"
+    assert reports["process"]["submaps"] == reports["inline"]["submaps"] > 5
+    for key in ("ate_rmse", "loops_accepted", "loops_rejected"):
+        assert reports["process"][key] == pytest.approx(reports["inline"][key], rel=1e-6), key
+    a = np.loadtxt(tmp_path / "inline" / "keyframes.txt")
+    b = np.loadtxt(tmp_path / "process" / "keyframes.txt")
+    assert np.allclose(a, b, atol=1e-9)
+    assert reports["process"]["peak_rss_mb_backend"] > 0 and reports["process"]["frontend_fps"] > 0
+
+
+def test_worker_error_reraises_in_the_caller(tmp_path, rng):
+    from vggt_slam_pp.backend.backend import BackendConfig, SubmapMessage
+    from vggt_slam_pp.backend.worker import BackendWorker
+    from vggt_slam_pp.frontend.types import OdometryEdge
+
+    worker = BackendWorker(BackendConfig(queue_size=1), tmp_path / "s")
+    worker.store.put(0, rng.normal(size=(500, 3)))
+    worker.submit(SubmapMessage(0, np.zeros((2, 3)), None))
+    worker.store.put(7, rng.normal(size=(500, 3)))
+    bad = OdometryEdge(prev=5, curr=7, T_prev_curr=np.eye(4), residual=0.0, inlier_ratio=1.0,
+                       num_correspondences=10, method="test")
+    worker.submit(SubmapMessage(7, np.zeros((2, 3)), bad))
+    with pytest.raises(BackendError, match="back-end failed: BackendError: odometry edge 5->7 refers to an unknown"):
+        worker.finish(timeout_s=60)
+    assert not worker._proc.is_alive()
+    snap = worker.latest()
+    assert snap is not None and snap.last_submap == 0
+    with pytest.raises(ValueError):
+        snap.poses[0][0, 0] = 2.0  # snapshots are immutable
+    with pytest.raises(TypeError):
+        snap.poses[1] = np.eye(4)
+
+
+def test_worker_rejects_an_unknown_mode(tmp_path):
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.worker import BackendWorker
+
+    with pytest.raises(BackendError, match="unknown back-end mode 'threads'"):
+        BackendWorker(BackendConfig(worker="threads"), tmp_path)

@@ -72,6 +72,16 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
     return fields
 
 
+def write_keyframes_snapshot(out: Path, submaps: list, poses) -> None:
+    """``keyframes.txt`` (TUM) at a pose snapshot taken mid-run: the keyframes of every submap the
+    snapshot has a pose for. Written atomically, so an interrupted run leaves a consistent trajectory."""
+    have = [sm for sm in submaps if sm.id in poses]
+    if not have:
+        return
+    partial = FrontendResult(have, [], [np.asarray(poses[sm.id]) for sm in have], [], {})
+    write_tum(Path(out) / "keyframes.txt", partial.keyframe_trajectory())
+
+
 def _write_graph(path: Path, result: FrontendResult, backend: BackendResult) -> None:
     nodes = [{"id": sm.id, "frames": [int(i) for i in sm.frame_indices],
               "T_world_submap": backend.poses[sm.id].tolist(),

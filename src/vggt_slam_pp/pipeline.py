@@ -13,8 +13,11 @@ writes, atomically, into ``out_dir``:
   (corrected), ``graph.json``, ``map.ply``, ``dem/``, ``trajectory.png`` and the loop figures in the report;
   ``submaps/`` holds each submap's points (the back-end's on-disk store).
 
-If the run fails part-way (a :class:`VggtSlamError`), the outputs of the submaps finished so far are
-still written, with the error in ``report.json``, and the error is re-raised.
+The back-end runs in its own process (:class:`~vggt_slam_pp.backend.worker.BackendWorker`; ``inline``
+mode for tests); ``keyframes.txt`` follows its newest pose snapshot during the run. If the run fails
+part-way (a :class:`VggtSlamError`) or is interrupted (Ctrl-C), the outputs of the submaps finished so far
+are still written (odometry trajectories, ``keyframes.txt`` at the last snapshot), with the error in
+``report.json``, and the error is re-raised.
 """
 
 from __future__ import annotations
@@ -22,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -31,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from vggt_slam_pp import __version__
-from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, SubmapMessage
+from vggt_slam_pp.backend.backend import BackendConfig, BackendResult, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.backend.worker import BackendWorker
 from vggt_slam_pp.errors import EvaluationError, FrontendError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
@@ -40,7 +43,8 @@ from vggt_slam_pp.frontend.odometry import chain
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
-from vggt_slam_pp.outputs import json_default, write_backend_outputs
+from vggt_slam_pp.outputs import json_default, write_backend_outputs, write_keyframes_snapshot
+from vggt_slam_pp.resources import peak_rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -100,10 +104,6 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
     raise FrontendError(f"unknown backbone {b.name!r}; choose one of {', '.join(BACKBONES)}")
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
         progress: Callable[[int, int], None] | None = None) -> dict:
     """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary."""
@@ -118,12 +118,15 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
 
         store = PredictionStore(out / "predictions")
     frontend = Frontend(backbone, config.frontend, store=store)
-    backend = Backend(config.backend_config, SubmapStore(out / "submaps")) if config.backend else None
-    feeder = _BackendFeeder(frontend, backend)
+    worker = BackendWorker(config.backend_config, out / "submaps") if config.backend else None
+    feeder = _BackendFeeder(frontend, worker, out)
     n = len(source)
-    error: VggtSlamError | None = None
+    error: BaseException | None = None
     t_read = 0.0
     backend_result: BackendResult | None = None
+    t_loop = time.perf_counter()
+    frontend_s = None
+    t_finish = 0.0
     try:
         for i in range(n):
             t = time.perf_counter()
@@ -138,26 +141,41 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
                 progress(i + 1, n)
         result = frontend.finish()
         feeder.feed()
-        if backend is not None:
-            backend_result = backend.finish()
-    except VggtSlamError as exc:
+        frontend_s = time.perf_counter() - t_loop
+        if worker is not None:
+            t = time.perf_counter()
+            backend_result = worker.finish()
+            t_finish = time.perf_counter() - t
+    except (VggtSlamError, KeyboardInterrupt) as exc:
         error = exc
-        log.error("run failed: %s; writing the outputs of %d finished submaps", exc, len(frontend.submaps))
+        log.error("run %s: %s; writing the outputs of %d finished submaps",
+                  "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed", exc or "interrupted",
+                  len(frontend.submaps))
         result = FrontendResult(frontend.submaps, frontend.edges, chain(frontend.edges), frontend.decisions,
                                 dict(frontend.timings)) if frontend.submaps else None
+        if worker is not None:
+            worker.close()
     finally:
         backbone.close()
     total = time.perf_counter() - t0
     report = _report(source, config, result, total, t_read, error)
-    report["timings"] = {**report.get("timings", {}), "backend_s": feeder.seconds}
+    report["timings"] = {**report.get("timings", {}), "backend_submit_s": feeder.seconds,
+                         "backend_finish_wait_s": t_finish}
     if result is not None:
         _write_trajectories(out, result)
     if result is not None and backend_result is not None:
-        report.update(write_backend_outputs(out, source, result, backend_result, backend.store))
+        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps", 0)))
         if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
             report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
-    report["frontend_fps"] = (len(result.decisions) / max(total - feeder.seconds, 1e-9)) if result else None
-    report["peak_rss_mb"] = _peak_rss_mb()
+    if worker is not None:
+        report["backend_mode"] = worker.mode
+        report["backend_queue_wait_s"] = worker.wait_s
+    # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
+    # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
+    report["frontend_fps"] = len(result.decisions) / max(frontend_s, 1e-9) if result and frontend_s else None
+    backend_peak = backend_result.peak_rss_mb if backend_result is not None and worker.mode == "process" else 0.0
+    report["peak_rss_mb"] = peak_rss_mb() + backend_peak
+    report["peak_rss_mb_backend"] = backend_peak
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if error is not None:
         raise error
@@ -165,28 +183,34 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
 
 
 class _BackendFeeder:
-    """Sends every finished submap to the back-end (points to the on-disk store first) and releases the
-    front-end's copy of the points of submaps it no longer needs (bounded memory)."""
+    """Sends every finished submap to the back-end worker (points to the on-disk store first), releases
+    the front-end's copy of the points it no longer needs (bounded memory), and keeps ``keyframes.txt``
+    at the newest pose snapshot, so an interrupted run leaves its latest consistent trajectory."""
 
-    def __init__(self, frontend: Frontend, backend: Backend | None) -> None:
-        self.frontend, self.backend = frontend, backend
+    def __init__(self, frontend: Frontend, worker: BackendWorker | None, out: Path) -> None:
+        self.frontend, self.worker, self.out = frontend, worker, out
         self.sent = 0
         self.seconds = 0.0
+        self._written = (-1, -1)
 
     def feed(self) -> None:
-        if self.backend is None:
+        if self.worker is None:
             return
         t = time.perf_counter()
         while self.sent < len(self.frontend.submaps):
             sm = self.frontend.submaps[self.sent]
             pred = sm.prediction
             pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
-            self.backend.store.put(sm.id, pts)
+            self.worker.store.put(sm.id, pts)
             centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
             edge = self.frontend.edges[sm.id - 1] if sm.id > 0 else None
-            self.backend.add_submap(SubmapMessage(sm.id, centres, edge))
+            self.worker.submit(SubmapMessage(sm.id, centres, edge))
             self.sent += 1
         self.frontend.release_points(keep_last=1)
+        snap = self.worker.latest()
+        if snap is not None and (snap.version, snap.last_submap) != self._written:
+            write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
+            self._written = (snap.version, snap.last_submap)
         self.seconds += time.perf_counter() - t
 
 
@@ -223,10 +247,10 @@ def _ate(gt_pair, est: Trajectory) -> dict:
 
 
 def _report(source: FrameSource, config: RunConfig, result: FrontendResult | None, total: float,
-            t_read: float, error: VggtSlamError | None) -> dict:
+            t_read: float, error: BaseException | None) -> dict:
     report: dict = {"version": __version__, "backbone": config.backbone.name, "calibrated": config.calibrated,
-                    "frames": len(source), "seconds_total": total, "peak_memory_mb": _peak_rss_mb(),
-                    "error": str(error) if error else None}
+                    "frames": len(source), "seconds_total": total, "peak_memory_mb": peak_rss_mb(),
+                    "error": (str(error) or type(error).__name__) if error else None}
     if result is None:
         return report
     kf = result.keyframe_trajectory()

@@ -35,6 +35,7 @@ from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError
 from vggt_slam_pp.frontend.types import OdometryEdge
 from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
+from vggt_slam_pp.resources import rss_mb
 from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,10 @@ class BackendConfig:
     registration_max_points: int = 20_000
     relocate_min_shift_tiles: float = 0.25
     cache_submaps: int = 8
+    worker: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
+    queue_size: int = 4  # bounded inbox of the worker: the front-end blocks when it is full
+    worker_threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
+    inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random far candidate
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,7 @@ class PoseSnapshot:
     poses: MappingProxyType  # submap id -> T_world_submap [4,4] (read-only arrays)
     loops_accepted: int
     last_submap: int
+    rss_mb: float = 0.0  # resident memory of the back-end's process when the snapshot was taken
 
 
 @dataclass
@@ -89,6 +95,7 @@ class BackendResult:
     plane: dict | None
     tile_size: float | None
     mpp: float | None
+    peak_rss_mb: float = 0.0  # of the back-end's process
 
 
 def _subsample(points: np.ndarray, n: int) -> np.ndarray:
@@ -186,6 +193,11 @@ class Backend:
                 for k in np.argsort(d)[: self.config.proximity_candidates]:
                     if d[k] <= radius and old[k] not in taken:
                         out.append((old[k], 0.0, np.inf))
+                rate = self.config.inject_wrong_candidates
+                far = [j for j, dj in zip(old, d, strict=True) if dj > 2 * radius]
+                rng = np.random.default_rng(sid)
+                if rate > 0 and far and rng.random() < rate:  # fault injection: a candidate from elsewhere
+                    out.append((int(rng.choice(far)), 0.0, np.inf))  # reaches verification
         return out
 
     def _verify(self, sid: int, res, points_world: np.ndarray) -> list[LoopResult]:
@@ -247,7 +259,7 @@ class Backend:
             a.flags.writeable = False
             poses[i] = a
         return PoseSnapshot(self._version, MappingProxyType(poses), sum(r.accepted for r in self.loops),
-                            max(self.graph.poses) if self.graph.poses else -1)
+                            max(self.graph.poses) if self.graph.poses else -1, rss_mb())
 
     def finish(self) -> BackendResult:
         """Final global optimisation (when there is any loop) and the result."""

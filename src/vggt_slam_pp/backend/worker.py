@@ -1,0 +1,201 @@
+"""The back-end worker: a :class:`~vggt_slam_pp.backend.backend.Backend` in its own process (SPEC 3.10).
+
+GTSAM holds the GIL during a solve, FAISS and OpenCV take CPU, so the back-end cannot share the
+front-end's interpreter without stalling it. :class:`BackendWorker` runs it in a separate process
+(``spawn``) and talks to it through two queues:
+
+* inbox (bounded, ``queue_size``): :class:`SubmapMessage` records; the points travel through the on-disk
+  :class:`SubmapStore`, not the queue. A full inbox blocks :meth:`BackendWorker.submit` (back-pressure:
+  the front-end never runs unboundedly ahead of a slower back-end);
+* outbox: one :class:`PoseSnapshot` per processed submap, the final :class:`BackendResult`, or an error.
+
+:meth:`BackendWorker.latest` returns the newest snapshot without blocking; an error inside the worker
+(an exception, or the process dying) re-raises in the caller as :class:`BackendError` at the next
+:meth:`submit`, :meth:`latest` or :meth:`finish`. ``mode="inline"`` runs the same back-end synchronously
+in the caller (tests, debugging): identical results, no concurrency.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import time
+import traceback
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, PoseSnapshot, SubmapMessage
+from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.resources import peak_rss_mb
+
+log = logging.getLogger(__name__)
+
+MODES = ("process", "inline")
+
+
+def _limit_threads(n: int) -> None:
+    """Keep the worker's libraries to ``n`` threads so the front-end keeps its cores."""
+    import cv2
+    import faiss
+
+    cv2.setNumThreads(n)
+    faiss.omp_set_num_threads(n)
+    try:
+        import torch
+
+        torch.set_num_threads(n)
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+
+
+def _plain(snapshot: PoseSnapshot) -> tuple:
+    return snapshot.version, dict(snapshot.poses), snapshot.loops_accepted, snapshot.last_submap, snapshot.rss_mb
+
+
+def _snapshot(plain: tuple) -> PoseSnapshot:
+    version, poses, loops, last, rss = plain
+    for a in poses.values():
+        a.flags.writeable = False
+    return PoseSnapshot(version, MappingProxyType(poses), loops, last, rss)
+
+
+def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
+    """The worker process: build the back-end, then one snapshot per message until ``None``."""
+    try:
+        _limit_threads(config.worker_threads)
+        backend = Backend(config, SubmapStore(folder, config.cache_submaps))
+        outbox.put(("ready", None))
+        while True:
+            msg = inbox.get()
+            if msg is None:
+                result = backend.finish()
+                result.peak_rss_mb = peak_rss_mb()
+                outbox.put(("result", result))
+                return
+            outbox.put(("snapshot", _plain(backend.add_submap(msg))))
+    except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
+        outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+
+
+class BackendWorker:
+    """Front-end side of the back-end. ``submit`` each finished submap (points already in ``store``),
+    read :meth:`latest` for optimised poses, and :meth:`finish` for the final result."""
+
+    def __init__(self, config: BackendConfig, folder: str | Path, mode: str | None = None,
+                 start_timeout_s: float = 300.0) -> None:
+        mode = mode or config.worker
+        if mode not in MODES:
+            raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
+        self.config, self.mode = config, mode
+        self.folder = Path(folder)
+        self.store = SubmapStore(self.folder, cache_size=0)  # the writer keeps nothing in memory
+        self._latest: PoseSnapshot | None = None
+        self._result: BackendResult | None = None
+        self.submitted = 0
+        self.wait_s = 0.0  # time the caller spent blocked on a full inbox
+        if mode == "inline":
+            self._backend: Backend | None = Backend(config, SubmapStore(self.folder, config.cache_submaps))
+            return
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._inbox = ctx.Queue(maxsize=max(1, config.queue_size))
+        self._outbox = ctx.Queue()
+        self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox),
+                                 name="vggt-slam-pp-backend", daemon=True)
+        self._proc.start()
+        self._backend = None
+        self._await(lambda kind: kind == "ready", start_timeout_s, "start")
+
+    # -- messages ---------------------------------------------------------------------------------
+    def submit(self, msg: SubmapMessage) -> None:
+        """Hand one submap to the back-end; blocks while the inbox is full."""
+        self.submitted += 1
+        if self._backend is not None:
+            self._latest = self._backend.add_submap(msg)
+            return
+        t0 = time.perf_counter()
+        while True:
+            self._drain()
+            try:
+                self._inbox.put(msg, timeout=0.2)
+                break
+            except queue.Full:
+                self._check_alive()
+        self.wait_s += time.perf_counter() - t0
+
+    def latest(self) -> PoseSnapshot | None:
+        """The newest pose snapshot (non-blocking); raises if the worker has failed."""
+        if self._backend is None:
+            self._drain()
+        return self._latest
+
+    def finish(self, timeout_s: float | None = None) -> BackendResult:
+        """Process everything submitted, optimise globally, return the result and stop the worker."""
+        if self._backend is not None:
+            self._result = self._backend.finish()
+            self._result.peak_rss_mb = peak_rss_mb()
+            return self._result
+        self._inbox.put(None)
+        self._await(lambda kind: kind == "result", timeout_s, "finish")
+        self._proc.join(timeout=30)
+        return self._result
+
+    def close(self) -> None:
+        """Stop the worker now (after an error or an interruption)."""
+        if self._backend is None and self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout=10)
+
+    # -- internals --------------------------------------------------------------------------------
+    def _handle(self, item: tuple) -> str:
+        kind = item[0]
+        if kind == "snapshot":
+            self._latest = _snapshot(item[1])
+        elif kind == "result":
+            self._result = item[1]
+        elif kind == "error":
+            log.debug("back-end worker traceback:\n%s", item[2])
+            self.close()
+            raise BackendError(f"back-end failed: {item[1]}")
+        return kind
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                item = self._outbox.get_nowait()
+            except queue.Empty:
+                return
+            self._handle(item)
+
+    def _check_alive(self) -> None:
+        if not self._proc.is_alive():
+            self._drain()  # an error message may still be in flight
+            raise BackendError(f"the back-end worker exited unexpectedly (exit code {self._proc.exitcode})")
+
+    def _await(self, done, timeout_s: float | None, what: str) -> None:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            try:
+                item = self._outbox.get(timeout=0.5)
+            except queue.Empty:
+                self._check_alive()
+                if deadline is not None and time.monotonic() > deadline:
+                    self.close()
+                    raise BackendError(f"the back-end worker did not {what} within {timeout_s:.0f} s") from None
+                continue
+            if done(self._handle(item)):
+                return
+
+
+def default_threads() -> int:
+    """Half the CPU cores for the worker (at least one): the front-end keeps the rest."""
+    return max(1, (os.cpu_count() or 2) // 2)
+
+
+def snapshot_poses(snapshot: PoseSnapshot | None) -> dict[int, np.ndarray]:
+    return {} if snapshot is None else {int(i): np.asarray(T) for i, T in snapshot.poses.items()}

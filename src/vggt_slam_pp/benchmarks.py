@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -93,25 +94,60 @@ def bench_retrieval(n_large: int = 100_000, n_small: int = 10_000, dim: int = 76
     return out
 
 
-def _scene_sequence(scene: str, frames: int, width: int, height: int, workdir, seed: int):
-    """Render (or reuse) a synthetic sequence; ``scene`` is figure8, loop or kitti00."""
-    from pathlib import Path
+SHARED_TRAJECTORIES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "gt_trajectories_only"
 
+
+def _scene_sequence(scene: str, frames: int, width: int, height: int, workdir, seed: int):
+    """Render (or reuse) a synthetic sequence: ``scene`` is figure8, loop, kitti00 / kitti07 (a camera
+    driven along that KITTI ground-truth trajectory from ``../shared/data``) or a trajectory file. None
+    when a KITTI file is absent."""
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.synthetic import make_scene, write_sequence
 
-    out = Path(workdir) / f"{scene}_{frames}_{width}x{height}_{seed}"
+    trajectory = None
+    if scene.startswith("kitti") and not Path(scene).is_file():
+        found = sorted(SHARED_TRAJECTORIES.rglob(f"{scene[5:]}.txt")) if SHARED_TRAJECTORIES.is_dir() else []
+        if not found:
+            return None
+        trajectory = found[0]
+    elif Path(scene).is_file():
+        trajectory = Path(scene)
+    name = trajectory.stem if trajectory is not None and not scene.startswith("kitti") else scene
+    out = Path(workdir) / f"{name}_{frames}_{width}x{height}_{seed}"
     if not (out / "groundtruth.txt").is_file():
-        if scene == "kitti00":
-            gt = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "gt_trajectories_only"
-            files = sorted(gt.rglob("00.txt")) if gt.is_dir() else []
-            if not files:
-                return None
-            sc = make_scene(trajectory_file=files[0], frames=frames, width=width, height=height, seed=seed)
+        if trajectory is not None:
+            sc = make_scene(trajectory_file=trajectory, frames=frames, width=width, height=height, seed=seed)
         else:
             sc = make_scene(scene, frames=frames, width=width, height=height, seed=seed)
         write_sequence(sc, out)
     return open_source(out)
+
+
+def _gt_footprints(source, submap_frames: list, tile: float = 2.0) -> list[set]:
+    """Per submap, the ``tile``-metre ground cells its noise-free points cover at ground-truth poses."""
+    from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
+    from vggt_slam_pp.geometry.lie import transform_points
+
+    idx, gt = source.frame_ground_truth()
+    gt_poses = dict(zip(idx.tolist(), gt.poses, strict=True))
+    exact = SimulatedBackbone(gt_poses, SimulatedNoise.zero())
+    footprints = []
+    for frames in submap_frames:
+        ex = exact.predict([source[int(i)] for i in frames])
+        world = transform_points(gt_poses[int(frames[0])], np.concatenate(ex.points))
+        footprints.append({tuple(t) for t in np.floor(world[:, :2] / tile).astype(int)})
+    return footprints
+
+
+def _overlap_matrix(footprints: list[set]) -> np.ndarray:
+    """Symmetric share of common cells, relative to the smaller footprint."""
+    n = len(footprints)
+    overlap = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i):
+            inter = len(footprints[i] & footprints[j])
+            overlap[i, j] = overlap[j, i] = inter / max(1, min(len(footprints[i]), len(footprints[j])))
+    return overlap
 
 
 def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600, width: int = 320,
@@ -146,24 +182,15 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
         for i in range(len(source)):
             fe.process(source[i])
         res = fe.finish()
-        exact = SimulatedBackbone(gt_poses, SimulatedNoise.zero())
         stage = CovisibilityStage(HogEncoder(), CovisibilityConfig())
-        footprints, outputs = [], []
+        outputs = []
         for sm, T_ws in zip(res.submaps, res.T_world_submap, strict=True):
             pred = sm.prediction
             pts = np.concatenate([p for p in pred.points if len(p)])
             centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
             outputs.append(stage.process(sm.id, transform_points(T_ws, pts), transform_points(T_ws, centres)))
-            frames_sm = [source[int(i)] for i in sm.frame_indices]
-            ex = exact.predict(frames_sm)
-            world = transform_points(gt_poses[int(sm.frame_indices[0])], np.concatenate(ex.points))
-            footprints.append({tuple(t) for t in np.floor(world[:, :2] / 2.0).astype(int)})
-        n = len(footprints)
-        overlap = np.zeros((n, n))
-        for i in range(n):
-            for j in range(i):
-                inter = len(footprints[i] & footprints[j])
-                overlap[i, j] = inter / max(1, min(len(footprints[i]), len(footprints[j])))
+        overlap = _overlap_matrix(_gt_footprints(source, [sm.frame_indices for sm in res.submaps]))
+        n = len(overlap)
         excl = stage.config.index.exclude_recent
         revisit, hit, cand_total, cand_ok = 0, 0, 0, 0
         for i, out in enumerate(outputs):
@@ -187,3 +214,100 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
             "covisibility_recall": float(np.mean(recalls)) if recalls else None,
             "vpr_top1_precision": float(np.mean(precs)) if precs else None,
             "targets": {"covisibility_recall": 0.9, "vpr_top1_precision": 0.8}}
+
+
+def _synthetic_run_config(seed: int, backend: bool = True, **backend_fields):
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.frontend.frontend import FrontendConfig
+    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig
+
+    return RunConfig(backbone=BackboneConfig(name="simulated", seed=seed),
+                     frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8),
+                     save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields))
+
+
+def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(), frames: int = 600,
+                width: int = 320, height: int = 240, overlap_threshold: float = 0.3,
+                workdir: str = "runs/bench_loops", seed: int = 0, progress=None) -> dict:
+    """The whole system on synthetic revisits: simulated backbone (default noise), ``hog`` encoder.
+
+    Per scenario (built-in scenes and any ``trajectories`` files): the run with the back-end (its own
+    process) and without it. ``ate_odometry`` / ``ate_final``: keyframe ATE (Sim(3)-aligned) of the
+    odometry and the corrected trajectory; ``false_loops``: accepted loops whose two submaps' ground-truth
+    footprints (2 m cells) share less than ``overlap_threshold`` of the smaller one;
+    ``frontend_fps_backend_on/off``: frames over the wall time of the frame loop.
+    """
+    import dataclasses
+    import json
+
+    from vggt_slam_pp.pipeline import run
+
+    results = {}
+    for scene in [*scenes, *map(str, trajectories)]:
+        name = Path(scene).stem if Path(scene).is_file() else scene
+        if progress:
+            progress(name)
+        source = _scene_sequence(scene, frames, width, height, workdir, seed)
+        if source is None:
+            results[name] = {"skipped": "../shared/data/gt_trajectories_only not found"}
+            continue
+        folder = Path(workdir) / f"run_{name}_{frames}_{seed}"
+        config = _synthetic_run_config(seed)
+        on = run(source, config, folder / "on")
+        off = run(source, dataclasses.replace(config, backend=False), folder / "off")
+        graph = json.loads((folder / "on" / "graph.json").read_text())
+        overlap = _overlap_matrix(_gt_footprints(source, [n["frames"] for n in graph["nodes"]]))
+        accepted = [(c["query"], c["match"]) for c in graph["loop_candidates"] if c["accepted"]]
+        false = [(q, m) for q, m in accepted if overlap[q, m] < overlap_threshold]
+        results[name] = {
+            "frames": len(source), "submaps": on["submaps"],
+            "ate_odometry": on["ate_rmse_odometry"], "ate_final": on["ate_rmse"],
+            "ate_reduction": on["ate_reduction"],
+            "loops_accepted": on["loops_accepted"], "loops_rejected": on["loops_rejected"],
+            "false_loops": len(false), "false_loop_pairs": false,
+            "backend_s_per_submap": on["backend_s_per_submap"],
+            "frontend_fps_backend_on": on["frontend_fps"], "frontend_fps_backend_off": off["frontend_fps"],
+            "fps_ratio": on["frontend_fps"] / off["frontend_fps"],
+            "peak_rss_mb": on["peak_rss_mb"], "backend_finish_wait_s": on["timings"]["backend_finish_wait_s"],
+        }
+    done = [r for r in results.values() if "skipped" not in r]
+    return {"scenarios": results, "encoder": "hog", "backbone": "simulated", "frames": frames,
+            "mean_ate_reduction": float(np.mean([r["ate_reduction"] for r in done])) if done else None,
+            "false_loops": int(sum(r["false_loops"] for r in done)),
+            "min_fps_ratio": float(min(r["fps_ratio"] for r in done)) if done else None,
+            "targets": {"mean_ate_reduction": 0.5, "false_loops": 0, "min_fps_ratio": 0.9}}
+
+
+def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: int = 0, width: int = 320,
+                 height: int = 240) -> dict:
+    """A long synthetic run (the demo's block loop scaled up to about ``submaps`` submaps, same speed and
+    images) with the back-end on; RSS of the front-end plus the back-end process at 50 and at 300 submaps
+    from the run's ``memory_trace`` (every 10 submaps). Target: growth below 20 %."""
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import run
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    k = submaps / 36.0  # the 600-frame demo loop (60 x 40 m block) makes 37 submaps
+    frames = int(600 * k)
+    seq = Path(workdir) / f"loop_{frames}_{width}x{height}_{seed}"
+    if not (seq / "groundtruth.txt").is_file():
+        write_sequence(make_scene("loop", frames=frames, width=width, height=height, seed=seed,
+                                  scene_options={"length": 60.0 * k, "width": 40.0 * k}), seq)
+    t0 = time.perf_counter()
+    report = run(open_source(seq), _synthetic_run_config(seed), Path(workdir) / f"run_{frames}_{seed}")
+    trace = np.array(report["memory_trace"], float)  # (submaps, front-end MiB, back-end MiB)
+
+    def at(n: int) -> float:
+        row = trace[np.argmin(np.abs(trace[:, 0] - n))]
+        return float(row[1] + row[2])
+
+    out = {"submaps": report["submaps"], "frames": report["frames"], "seconds": time.perf_counter() - t0,
+           "rss_mb_at_50": at(50), "rss_mb_at_300": at(300), "peak_rss_mb": report["peak_rss_mb"],
+           "memory_trace": report["memory_trace"], "ate_rmse_odometry": report.get("ate_rmse_odometry"),
+           "ate_rmse": report.get("ate_rmse"), "loops_accepted": report.get("loops_accepted"),
+           "backend_s_per_submap": report.get("backend_s_per_submap"), "target_growth": 0.2}
+    out["growth"] = out["rss_mb_at_300"] / out["rss_mb_at_50"] - 1.0
+    if report["submaps"] < 300:
+        out["warning"] = f"only {report['submaps']} submaps: the figure at 300 is the last one measured"
+    return out

@@ -44,7 +44,7 @@ from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 from vggt_slam_pp.outputs import json_default, write_backend_outputs, write_keyframes_snapshot
-from vggt_slam_pp.resources import peak_rss_mb
+from vggt_slam_pp.resources import peak_rss_mb, rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,7 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     if worker is not None:
         report["backend_mode"] = worker.mode
         report["backend_queue_wait_s"] = worker.wait_s
+        report["memory_trace"] = feeder.memory_trace
     # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
     # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
     report["frontend_fps"] = len(result.decisions) / max(frontend_s, 1e-9) if result and frontend_s else None
@@ -192,6 +193,9 @@ class _BackendFeeder:
         self.sent = 0
         self.seconds = 0.0
         self._written = (-1, -1)
+        # every ``trace_every`` submaps: (submaps sent, front-end RSS MiB, back-end RSS MiB at its last snapshot)
+        self.memory_trace: list[tuple[int, float, float]] = []
+        self.trace_every = 10
 
     def feed(self) -> None:
         if self.worker is None:
@@ -211,6 +215,9 @@ class _BackendFeeder:
         if snap is not None and (snap.version, snap.last_submap) != self._written:
             write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
             self._written = (snap.version, snap.last_submap)
+        if self.sent // self.trace_every > len(self.memory_trace):
+            backend_rss = snap.rss_mb if snap is not None and self.worker.mode == "process" else 0.0
+            self.memory_trace.append((self.sent, rss_mb(), backend_rss))
         self.seconds += time.perf_counter() - t
 
 

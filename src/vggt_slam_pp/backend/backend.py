@@ -54,12 +54,15 @@ class BackendConfig:
     far_loop_submaps: int = 10
     window_neighbours: int = 1
     dem_max_points: int = 200_000
-    registration_max_points: int = 20_000
+    registration_max_points: int = 10_000
     relocate_min_shift_tiles: float = 0.25
     cache_submaps: int = 8
+    loop_information: str = "icp"  # "icp": full 7x7 from the registration (weak directions stay weak);
+    # "isotropic": the configured loop sigmas
     worker: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
-    queue_size: int = 4  # bounded inbox of the worker: the front-end blocks when it is full
+    queue_size: int = 16  # bounded inbox of the worker (submap ids + poses only): the front-end blocks when full
     worker_threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
+    worker_nice: int = 10  # niceness added to the worker process: the front-end keeps priority
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random far candidate
 
 
@@ -220,7 +223,8 @@ class Backend:
                 g = self.config.graph
                 trans = max(r.residual, g.loop_trans_sigma_tiles * grid.tile_size) / float(s_m)
                 sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
-                self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict()))
+                info = r.information if self.config.loop_information == "icp" else None
+                self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict(), info))
                 accepted.append(r)
         return accepted
 
@@ -269,6 +273,8 @@ class Backend:
         edges = []
         for e in self.graph.edges:
             d = {"from": e.i, "to": e.j, "kind": e.kind, "T": e.T_ij.tolist(), "sigmas": e.sigmas.tolist(), **e.info}
+            if e.information is not None:
+                d["information"] = e.information.tolist()
             if e.kind == "loop":
                 d["robust_weight"] = next(weights)
             edges.append(d)

@@ -44,7 +44,8 @@ class GraphConfig:
 
 @dataclass(frozen=True)
 class Edge:
-    """A relative measurement ``T_ij`` between nodes i and j, with 7 sigmas ``[rot 3, trans 3, scale]``."""
+    """A relative measurement ``T_ij`` between nodes i and j, with 7 sigmas ``[rot 3, trans 3, scale]``
+    or, when ``information`` (7x7, same order) is given, that full information matrix instead."""
 
     i: int
     j: int
@@ -52,6 +53,13 @@ class Edge:
     sigmas: np.ndarray
     kind: str  # "odometry" or "loop"
     info: dict = field(default_factory=dict)
+    information: np.ndarray | None = None
+
+    def whitened_norm(self, r: np.ndarray) -> float:
+        """Mahalanobis length of a tangent residual ``r`` [7] under this edge's noise."""
+        if self.information is not None:
+            return float(np.sqrt(max(r @ self.information @ r, 0.0)))
+        return float(np.linalg.norm(r / self.sigmas))
 
 
 def to_gtsam(T: np.ndarray):
@@ -103,13 +111,19 @@ class PoseGraph:
                 raise BackendError(f"edge {edge.i}->{edge.j}: submap {n} is not in the pose graph")
         if edge.sigmas.shape != (7,) or not np.all(edge.sigmas > 0):
             raise BackendError(f"edge {edge.i}->{edge.j}: sigmas must be 7 positive numbers")
+        if edge.information is not None and (edge.information.shape != (7, 7) or
+                                             np.linalg.eigvalsh(edge.information).min() <= 0):
+            raise BackendError(f"edge {edge.i}->{edge.j}: information must be a 7x7 positive-definite matrix")
         self.edges.append(edge)
 
     # -- solving --------------------------------------------------------------------------------
     def _noise(self, edge: Edge, kernel: str):
         import gtsam
 
-        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(edge.sigmas, float))
+        if edge.information is not None:
+            base = gtsam.noiseModel.Gaussian.Information(np.asarray(edge.information, float))
+        else:
+            base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(edge.sigmas, float))
         if edge.kind != "loop" or kernel == "none":
             return base
         k = self.config.kernel_width
@@ -187,7 +201,7 @@ class PoseGraph:
             if e.kind != "loop":
                 continue
             r = sim3_log(sim3_inverse(e.T_ij) @ sim3_inverse(self.poses[e.i]) @ self.poses[e.j])
-            d = float(np.linalg.norm(r / e.sigmas))  # same [omega, u, lambda] order as the sigmas
+            d = e.whitened_norm(r)  # same [omega, u, lambda] order as the sigmas
             out.append(1.0 / (1.0 + (d / k) ** 2) if kernel == "cauchy" else (1.0 if d <= k or kernel == "none"
                                                                               else k / d))
         return out

@@ -30,9 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vggt_slam_pp.dem.plane import GroundPlane
-from vggt_slam_pp.errors import GeometryError
-from vggt_slam_pp.geometry.alignment import umeyama
-from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, sim3_log, so3_exp, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +40,7 @@ class RegistrationConfig:
     ransac_radius_tiles: float = 1.5
     ransac_iterations: int = 500
     min_planar_inliers: int = 4
-    icp_iterations: int = 25
+    icp_iterations: int = 12
     icp_radius_tiles: float = 2.0
     inlier_radius_tiles: float = 0.2
     max_points: int = 4000
@@ -53,6 +51,15 @@ class RegistrationConfig:
     max_residual_tiles: float = 0.12
     min_vote_margin: float = 0.0  # score(candidate) - score(next); 0 disables
     max_scale_change: float = 0.2  # |log s| of the correction
+    search_cell_tiles: float = 0.2  # DEM search: occupancy-image cell
+    search_max_yaw_deg: float = 15.0
+    search_yaw_step_deg: float = 1.0
+    search_max_shift_tiles: float = 5.0
+    normals_k: int = 10
+    min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
+    floor_rot_sigma: float = 0.1  # loop information: weak prior per ICP parameter (rad, tiles, log-scale)
+    floor_trans_sigma_tiles: float = 5.0
+    floor_scale_sigma: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -68,12 +75,15 @@ class LoopResult:
     residual: float  # world units
     planar_inliers: int
     score: float
-    guess: str  # "planar" or "odometry"
+    guess: str  # "odometry", "dem_search" or "planar"
+    constraint_ratio: float = 0.0  # weakest / strongest in-plane translation information of the ICP
+    information: np.ndarray | None = None  # 7x7, in the pose graph's tangent of T_match_query
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
-                "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess}
+                "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
+                "constraint_ratio": self.constraint_ratio}
 
 
 def planar_ransac(src_uv: np.ndarray, dst_uv: np.ndarray, radius: float, iterations: int = 500,
@@ -133,22 +143,138 @@ def _subsample(points: np.ndarray, n: int, seed: int) -> np.ndarray:
     return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
 
 
-def icp_sim3(src: np.ndarray, tree: cKDTree, dst: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """Sim(3) ``T`` with ``T src ~ dst`` by ICP: one rigid Umeyama on nearest neighbours per radius,
-    then one fit with scale at the last radius. (Fitting the scale in every round lets a cloud that
-    is mostly ground shrink onto itself: distances fall as the scale does.)"""
+def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
+    """[N,3] unit normals: the least-variance direction of each point's ``k`` nearest neighbours."""
+    _, nn = tree.query(points, min(k, len(points)))
+    nb = points[nn]
+    nb = nb - nb.mean(1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", nb, nb))
+    return vec[:, :, 0]
+
+
+def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals: np.ndarray, radii: np.ndarray,
+                       scale_rounds: int = 3, damping: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sim(3) ``T`` with ``T src ~ dst`` by point-to-plane ICP, one damped Gauss-Newton step per radius.
+
+    Residuals ``n_q . (p - q)`` with Cauchy weights (width: the radius / 4); unknowns: rotation, translation
+    and, in the last ``scale_rounds`` rounds only, log-scale about the matched points' centroid (a free
+    scale from a far guess lets the cloud shrink onto itself). Unlike point-to-point ICP, points on flat ground
+    constrain only height, tilt and scale, so a ground-dominated cloud does not hold the in-plane motion
+    at the initial guess. Returns ``T``, the 7x7 Gauss-Newton information ``J^T W J`` of the last step
+    (order: rotation, translation, log-scale; see :func:`icp_step`), whose small eigenvalues are the
+    poorly constrained directions, and the centre ``m`` [3] (world) that step was taken about.
+    """
     T = np.eye(4)
-    for k, r in enumerate([*radii, radii[-1]]):
+    H = np.zeros((7, 7))
+    m = src.mean(0)
+    for it, r in enumerate(radii):
         cur = transform_points(T, src)
         d, j = tree.query(cur, distance_upper_bound=r)
         ok = np.isfinite(d)
         if ok.sum() < 10:
             break
-        try:
-            T = umeyama(src[ok], dst[j[ok]], with_scale=k == len(radii))
-        except GeometryError:
-            break
-    return T
+        p, q, n = cur[ok], dst[j[ok]], normals[j[ok]]
+        m = p.mean(0)
+        pc = p - m
+        res = np.einsum("ij,ij->i", n, p - q)
+        J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", n, pc)[:, None]])
+        w = 1.0 / (1.0 + (res / (r / 4.0)) ** 2)
+        H = (J * w[:, None]).T @ J
+        dim = 7 if it >= len(radii) - scale_rounds else 6
+        A = H[:dim, :dim] + damping * np.trace(H[:dim, :dim]) / dim * np.eye(dim)
+        x = np.zeros(7)
+        x[:dim] = -np.linalg.solve(A, (J[:, :dim] * w[:, None]).T @ res)
+        T = icp_step(x, m) @ T
+    return T, H, m
+
+
+def icp_step(x: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The 4x4 motion ``p -> exp(x_6) R(x_0:3) (p - centre) + centre + x_3:6`` of one ICP step."""
+    s = float(np.exp(x[6]))
+    R = so3_exp(x[:3])
+    step = np.eye(4)
+    step[:3, :3] = s * R
+    step[:3, 3] = centre + x[3:6] - s * R @ centre
+    return step
+
+
+def loop_information(H: np.ndarray, centre: np.ndarray, C: np.ndarray, T_world_match: np.ndarray,
+                     T_world_query: np.ndarray, trans_sigma: float, floor_sigmas: np.ndarray) -> np.ndarray:
+    """7x7 information of the loop measurement ``Z = T_world_match^-1 C T_world_query`` in the pose
+    graph's tangent (``[omega, u, lambda]`` of ``Z^-1 Z'``), from the ICP information ``H`` (world
+    frame, about ``centre``).
+
+    ``H``'s shape is kept (directions the structure does not constrain, e.g. along a street of parallel
+    facades, stay weak) and its scale is set so the best-constrained translation direction has
+    ``trans_sigma``: the point residuals are far from independent, so ``H`` itself is overconfident.
+    ``floor_sigmas`` [7] adds a weak prior per ICP parameter, keeping the matrix positive-definite.
+    The Jacobian from the ICP parameters to the graph's tangent is taken by central differences.
+    """
+    Zi = sim3_inverse(sim3_inverse(T_world_match) @ C @ T_world_query)
+    A = np.zeros((7, 7))
+    h = 1e-6
+    for k in range(7):
+        x = np.zeros(7)
+        x[k] = h
+        plus = sim3_log(Zi @ sim3_inverse(T_world_match) @ icp_step(x, centre) @ C @ T_world_query)
+        minus = sim3_log(Zi @ sim3_inverse(T_world_match) @ icp_step(-x, centre) @ C @ T_world_query)
+        A[:, k] = (plus - minus) / (2 * h)
+    top = float(np.linalg.eigvalsh(H[3:6, 3:6]).max())
+    Hn = H / (max(top, 1e-12) * trans_sigma**2) + np.diag(1.0 / np.asarray(floor_sigmas, float) ** 2)
+    Ai = np.linalg.inv(A)
+    info = Ai.T @ Hn @ Ai
+    return 0.5 * (info + info.T)
+
+
+def dem_search(src: np.ndarray, dst: np.ndarray, plane: GroundPlane, ground: float, height: float, cell: float,
+               max_yaw_deg: float, yaw_step_deg: float, max_shift: float) -> tuple[np.ndarray, float]:
+    """Planar motion (yaw, shift) aligning the structure of ``src`` onto ``dst``: exhaustive yaw and
+    normalised cross-correlation of their structure-occupancy images in the ground plane.
+
+    Points higher than ``ground + height`` are rasterised into ``cell``-sized occupancy images (blurred by
+    one cell); for each yaw about the source structure's centroid, the shift within ``max_shift`` that
+    maximises the normalised correlation (OpenCV ``TM_CCORR_NORMED``). Returns the 4x4 world motion and
+    that score in [0, 1] (identity and 0 when either side has too little structure).
+    """
+    import cv2
+
+    cs, cd = plane.to_canonical(src), plane.to_canonical(dst)
+    us, ud = cs[cs[:, 2] > ground + height, :2], cd[cd[:, 2] > ground + height, :2]
+    if len(us) < 10 or len(ud) < 10:
+        return np.eye(4), 0.0
+    centre = us.mean(0)
+    k = int(np.ceil(max_shift / cell))
+
+    def image(uv: np.ndarray, lo: np.ndarray, shape) -> np.ndarray:
+        ij = np.floor((uv - lo) / cell).astype(int)
+        keep = np.all((ij >= 0) & (ij < np.array(shape)), axis=1)
+        img = np.zeros(shape, np.float32)
+        np.add.at(img, (ij[keep, 0], ij[keep, 1]), 1.0)
+        return cv2.GaussianBlur(np.minimum(img, 3.0), (0, 0), 1.0)
+
+    best = (-1.0, 0.0, np.zeros(2))
+    for yaw in np.radians(np.arange(-max_yaw_deg, max_yaw_deg + 1e-9, yaw_step_deg)):
+        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        rs = (us - centre) @ R.T + centre
+        lo = rs.min(0)
+        shape = tuple(np.ceil((rs.max(0) - lo) / cell).astype(int) + 1)
+        if shape[0] * shape[1] > 1_000_000:
+            return np.eye(4), 0.0
+        template = image(rs, lo, shape)
+        target = image(ud, lo - k * cell, (shape[0] + 2 * k, shape[1] + 2 * k))
+        if not target.any():
+            continue
+        corr = cv2.matchTemplate(target, template, cv2.TM_CCORR_NORMED)
+        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        if corr[i, j] > best[0]:
+            best = (float(corr[i, j]), yaw, np.array([i - k, j - k]) * cell)
+    score, yaw, shift = best
+    if score <= 0:
+        return np.eye(4), 0.0
+    R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    T2 = np.eye(3)
+    T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + shift
+    return planar_to_world(plane, T2), score
 
 
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
@@ -177,12 +303,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"vote margin {margin:.3f} < {c.min_vote_margin}")
     src = _subsample(np.asarray(points_query, float), c.max_points, query)
     dst = np.asarray(points_match, float)
-    tree = cKDTree(dst)
-    h_dst = plane.to_canonical(dst)[:, 2]
-    ground = float(np.median(h_dst))
-    struct_dst = dst[h_dst > ground + c.structure_height_tiles * unit]
-    struct_tree = cKDTree(struct_dst) if len(struct_dst) >= c.min_structure_points else None
-
     guesses = {"odometry": np.eye(4)}
     n_planar = 0
     if chip_uv is not None and tile_uv is not None and len(chip_uv) >= 2:
@@ -191,12 +311,36 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         n_planar = int(inl.sum())
         if n_planar >= c.min_planar_inliers:
             guesses["planar"] = planar_to_world(plane, T2)
+    # cheap early exit: footprints further apart than the search reaches (most wrong candidates)
+    reach = (c.search_max_shift_tiles + c.icp_radius_tiles) * unit
+    uv_dst = plane.to_canonical(dst)[:, :2]
+    lo, hi = uv_dst.min(0) - reach, uv_dst.max(0) + reach
+    if not any(np.any(np.all((uv >= lo) & (uv <= hi), axis=1))
+               for uv in (plane.to_canonical(transform_points(G, src))[:, :2] for G in guesses.values())):
+        return reject("footprints too far apart in the current estimate", planar_inliers=n_planar)
+    tree = cKDTree(dst)
+    h_dst = plane.to_canonical(dst)[:, 2]
+    ground = float(np.median(h_dst))
+    struct_dst = dst[h_dst > ground + c.structure_height_tiles * unit]
+    struct_tree = cKDTree(struct_dst) if len(struct_dst) >= c.min_structure_points else None
+    G, search_score = dem_search(src, dst, plane, ground, c.structure_height_tiles * unit, c.search_cell_tiles * unit,
+                                 c.search_max_yaw_deg, c.search_yaw_step_deg, c.search_max_shift_tiles * unit)
+    if search_score > 0:
+        guesses["dem_search"] = G
+    # a guess is worth refining only if enough of the query lies within the ICP's first radius
+    guesses = {k: G for k, G in guesses.items()
+               if np.isfinite(tree.query(transform_points(G, src), distance_upper_bound=c.icp_radius_tiles * unit)[0]
+                              ).mean() >= 0.5 * c.min_overlap}
+    if not guesses:
+        return reject(f"overlap < {0.5 * c.min_overlap:.2f} at every initial guess", planar_inliers=n_planar)
     radii = np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations) * unit
     r_in = c.inlier_radius_tiles * unit
+    normals = point_normals(dst, tree, c.normals_k)
     best = None
     for name, G in guesses.items():
         g_src = transform_points(G, src)
-        T = icp_sim3(g_src, tree, dst, radii) @ G
+        T, H, centre = icp_point_to_plane(g_src, tree, dst, normals, radii)
+        T = T @ G
         cur = transform_points(T, src)
         d, _ = tree.query(cur, distance_upper_bound=r_in)
         inl = np.isfinite(d)
@@ -209,11 +353,14 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             s_overlap = float(np.isfinite(ds).mean())
         else:
             s_overlap = 0.0
-        cand = (s_overlap, overlap, residual, T, name)
+        cand = (s_overlap, overlap, residual, T, name, H, centre)
         if best is None or (cand[0], cand[1]) > (best[0], best[1]):
             best = cand
-    s_overlap, overlap, residual, C, name = best
-    kw = dict(overlap=overlap, structure_overlap=s_overlap, residual=residual, planar_inliers=n_planar, guess=name)
+    s_overlap, overlap, residual, C, name, H, centre = best
+    ev = np.linalg.eigvalsh(plane.R[:2] @ H[3:6, 3:6] @ plane.R[:2].T)  # in-plane translation information
+    constraint = float(ev[0] / max(ev[1], 1e-12))
+    kw = dict(overlap=overlap, structure_overlap=s_overlap, residual=residual, planar_inliers=n_planar, guess=name,
+              constraint_ratio=constraint)
     s, _, _ = decompose_sim3(C)
     if abs(np.log(s)) > c.max_scale_change:
         return reject(f"scale change {float(s):.2f} too large", **kw)
@@ -224,4 +371,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if residual > c.max_residual_tiles * unit:
         return reject(f"residual {residual:.3f} > {c.max_residual_tiles * unit:.3f}", **kw)
     T_mq = sim3_inverse(T_world_match) @ C @ T_world_query
-    return LoopResult(query, match, True, "accepted", T_mq, C, score=score, **kw)
+    info = loop_information(H, centre, C, T_world_match, T_world_query, max(residual, c.min_trans_sigma_tiles * unit),
+                            np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
+    return LoopResult(query, match, True, "accepted", T_mq, C, score=score, information=info, **kw)

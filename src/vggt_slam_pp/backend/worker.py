@@ -20,12 +20,11 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import sys
 import time
 import traceback
 from pathlib import Path
 from types import MappingProxyType
-
-import numpy as np
 
 from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, PoseSnapshot, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
@@ -65,12 +64,19 @@ def _snapshot(plain: tuple) -> PoseSnapshot:
 
 def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
     """The worker process: build the back-end, then one snapshot per message until ``None``."""
+    parent = os.getppid()
     try:
+        os.nice(config.worker_nice)  # the front-end keeps priority on a busy CPU
         _limit_threads(config.worker_threads)
         backend = Backend(config, SubmapStore(folder, config.cache_submaps))
         outbox.put(("ready", None))
         while True:
-            msg = inbox.get()
+            try:
+                msg = inbox.get(timeout=1.0)
+            except queue.Empty:
+                if os.getppid() != parent:  # the caller is gone (killed): stop quietly
+                    return
+                continue
             if msg is None:
                 result = backend.finish()
                 result.peak_rss_mb = peak_rss_mb()
@@ -79,6 +85,25 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
             outbox.put(("snapshot", _plain(backend.add_submap(msg))))
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+
+
+def _start_without_main(proc) -> None:
+    """Start a ``spawn`` process without re-running the caller's ``__main__`` in it.
+
+    ``spawn`` normally re-imports the main script in the child, which fails (or re-runs the work) when a
+    user's script calls :func:`vggt_slam_pp.pipeline.run` without an ``if __name__ == "__main__"`` guard.
+    The worker's target lives in this importable module, so the main module is hidden while the child's
+    start-up data is prepared (inside ``start()``) and restored right after.
+    """
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    try:
+        for k in saved:
+            setattr(main, k, None) if k == "__spec__" else delattr(main, k)
+        proc.start()
+    finally:
+        for k, v in saved.items():
+            setattr(main, k, v)
 
 
 class BackendWorker:
@@ -107,7 +132,7 @@ class BackendWorker:
         self._outbox = ctx.Queue()
         self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox),
                                  name="vggt-slam-pp-backend", daemon=True)
-        self._proc.start()
+        _start_without_main(self._proc)
         self._backend = None
         self._await(lambda kind: kind == "ready", start_timeout_s, "start")
 
@@ -190,12 +215,3 @@ class BackendWorker:
                 continue
             if done(self._handle(item)):
                 return
-
-
-def default_threads() -> int:
-    """Half the CPU cores for the worker (at least one): the front-end keeps the rest."""
-    return max(1, (os.cpu_count() or 2) // 2)
-
-
-def snapshot_poses(snapshot: PoseSnapshot | None) -> dict[int, np.ndarray]:
-    return {} if snapshot is None else {int(i): np.asarray(T) for i, T in snapshot.poses.items()}

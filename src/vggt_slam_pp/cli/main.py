@@ -232,8 +232,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
         summary = (f"HNSW recall@10 at 100k tiles {result['recall_at_10']:.3f} (target >= 0.95); latency "
                    f"{result['latency_ms_10k']:.3f} ms (10k) -> {result['latency_ms_100k']:.3f} ms (100k), ratio "
                    f"{result['latency_ratio_100k_10k']:.2f} (target <= 3)")
+    elif args.suite == "loops":
+        result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
+                                        workdir=str(args.workdir or "runs/bench_loops"),
+                                        progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
+        summary = _loops_table(result)
+    elif args.suite == "memory":
+        result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"))
+        summary = (f"{result['submaps']} submaps ({result['frames']} frames): RSS (front-end + back-end) "
+                   f"{result['rss_mb_at_50']:.0f} MiB at 50 submaps, {result['rss_mb_at_300']:.0f} MiB at 300: "
+                   f"growth {100 * result['growth']:.1f} % (target < 20 %)")
     else:
-        result = benchmarks.bench_covisibility(frames=args.frames, workdir=str(args.workdir))
+        result = benchmarks.bench_covisibility(frames=args.frames, workdir=str(args.workdir or
+                                                                               "runs/bench_covisibility"))
         summary = "\n".join(
             f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
             f"{name}: {r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
@@ -246,6 +257,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         print(summary)
     return 0
+
+
+def _loops_table(result: dict) -> str:
+    head = (f"{'scenario':<12}{'submaps':>8}{'ATE odo':>9}{'ATE final':>10}{'reduct.':>8}{'loops':>6}{'false':>6}"
+            f"{'s/submap':>9}{'fps on':>8}{'fps off':>8}{'RSS MiB':>8}")
+    rows = [head]
+    for name, r in result["scenarios"].items():
+        if "skipped" in r:
+            rows.append(f"{name:<12}skipped: {r['skipped']}")
+            continue
+        rows.append(f"{name:<12}{r['submaps']:>8}{r['ate_odometry']:>9.3f}{r['ate_final']:>10.3f}"
+                    f"{100 * r['ate_reduction']:>7.0f}%{r['loops_accepted']:>6}{r['false_loops']:>6}"
+                    f"{r['backend_s_per_submap']:>9.3f}{r['frontend_fps_backend_on']:>8.1f}"
+                    f"{r['frontend_fps_backend_off']:>8.1f}{r['peak_rss_mb']:>8.0f}")
+    rows.append(f"mean ATE reduction {100 * (result['mean_ate_reduction'] or 0):.0f} % (target >= 50 %), false loops "
+                f"{result['false_loops']} (target 0), lowest fps ratio on/off {result['min_fps_ratio']:.2f} "
+                "(target >= 0.9)")
+    return "\n".join(rows)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -327,12 +356,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
-    b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency)")
-    b.add_argument("suite", choices=("dem", "retrieval", "covisibility"))
+    b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency), "
+                                     "covisibility, loops (the whole system on revisits), memory (long run)")
+    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "memory"))
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
-    b.add_argument("--frames", type=int, default=600, help="covisibility: frames per synthetic sequence")
-    b.add_argument("--workdir", type=Path, default=Path("runs/bench_covisibility"),
-                   help="covisibility: where the rendered sequences are cached")
+    b.add_argument("--frames", type=int, default=600, help="covisibility, loops: frames per synthetic sequence")
+    b.add_argument("--trajectory", type=Path, action="append", default=[],
+                   help="loops: also drive a camera along this trajectory file (TUM, KITTI or EuRoC); repeatable")
+    b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
+    b.add_argument("--workdir", type=Path, default=None,
+                   help="where rendered sequences and runs are kept (default: runs/bench_<suite>)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 

@@ -60,8 +60,10 @@ def make_scene(
     width: int = 640,
     height: int = 480,
     style: str | None = None,
+    scene_options: dict | None = None,
 ) -> SyntheticScene:
-    """Build a scene: a built-in trajectory (``figure8``, ``loop``) or one read from a file, plus a world
+    """Build a scene: a built-in trajectory (``figure8``, ``loop``; ``scene_options`` are passed to its
+    function, e.g. ``{"length": 600.0}`` for a larger block) or one read from a file, plus a world
     generated around it with ``seed``."""
     if trajectory_file is not None:
         traj, auto_style = from_trajectory_file(trajectory_file, frames)
@@ -69,7 +71,7 @@ def make_scene(
     else:
         if scene not in SCENES:
             raise SyntheticError(f"unknown scene {scene!r}; choose one of {', '.join(SCENES)} or give a trajectory file")
-        traj = SCENES[scene](n_frames=300 if frames is None else frames)
+        traj = SCENES[scene](n_frames=300 if frames is None else frames, **(scene_options or {}))
         auto_style, name = "outdoor", scene
     style = style or auto_style
     world = generate_world(traj.positions[:, :2], style=style, seed=seed)

@@ -232,3 +232,28 @@ def test_worker_rejects_an_unknown_mode(tmp_path):
 
     with pytest.raises(BackendError, match="unknown back-end mode 'threads'"):
         BackendWorker(BackendConfig(worker="threads"), tmp_path)
+
+
+@pytest.mark.timeout(900)
+def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp_path):
+    """Fault test: a wrong candidate (the nearest submap beyond the proximity radius, verified like any
+    other) for 10 % of the queries, and for 30 % as a stress case, changes the final ATE by < 10 %."""
+    from vggt_slam_pp.benchmarks import _synthetic_run_config
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import run
+    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    write_sequence(make_scene("loop", frames=600, width=224, height=168, seed=0), tmp_path / "seq")
+    source = open_source(tmp_path / "seq")
+    base = run(source, _synthetic_run_config(0, worker="inline"), tmp_path / "base")
+    assert base["loops_accepted"] >= 2 and base["ate_rmse"] < 0.9 * base["ate_rmse_odometry"]
+    for rate in (0.1, 0.3):
+        faulty = run(source, _synthetic_run_config(0, worker="inline", inject_wrong_candidates=rate),
+                     tmp_path / f"faulty{rate}")
+        graph = json.loads((tmp_path / f"faulty{rate}" / "graph.json").read_text())
+        injected = [c for c in graph["loop_candidates"] if c["source"] == "injected"]
+        recent = CovisibilityConfig().index.exclude_recent
+        queries = base["submaps"] - 1 - recent  # submaps with an earlier submap outside the recent ones
+        assert len(injected) == int(queries * rate) >= 1
+        assert abs(faulty["ate_rmse"] - base["ate_rmse"]) < 0.1 * base["ate_rmse"], rate

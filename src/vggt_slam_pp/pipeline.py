@@ -44,7 +44,7 @@ from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 from vggt_slam_pp.outputs import json_default, write_backend_outputs, write_keyframes_snapshot
-from vggt_slam_pp.resources import peak_rss_mb, rss_mb
+from vggt_slam_pp.resources import peak_rss_mb, reset_peak_rss, rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +109,7 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    reset_peak_rss()  # peak_rss_mb: this run's, not whatever the calling process did before
     atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
     t0 = time.perf_counter()
     backbone = backbone or make_backbone(config, source)
@@ -171,6 +172,7 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
         report["backend_mode"] = worker.mode
         report["backend_queue_wait_s"] = worker.wait_s
         report["memory_trace"] = feeder.memory_trace
+        report["backend_max_lag_submaps"] = feeder.max_lag
     # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
     # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
     report["frontend_fps"] = len(result.decisions) / max(frontend_s, 1e-9) if result and frontend_s else None
@@ -196,6 +198,7 @@ class _BackendFeeder:
         # every ``trace_every`` submaps: (submaps sent, front-end RSS MiB, back-end RSS MiB at its last snapshot)
         self.memory_trace: list[tuple[int, float, float]] = []
         self.trace_every = 10
+        self.max_lag = 0  # most submaps the back-end was behind the front-end at a hand-over
 
     def feed(self) -> None:
         if self.worker is None:
@@ -212,6 +215,7 @@ class _BackendFeeder:
             self.sent += 1
         self.frontend.release_points(keep_last=1)
         snap = self.worker.latest()
+        self.max_lag = max(self.max_lag, self.sent - (snap.last_submap + 1 if snap is not None else 0))
         if snap is not None and (snap.version, snap.last_submap) != self._written:
             write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
             self._written = (snap.version, snap.last_submap)

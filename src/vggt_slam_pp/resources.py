@@ -1,22 +1,39 @@
-"""Process memory figures for reports and benchmarks."""
+"""Process memory figures for reports and benchmarks (Linux ``/proc`` where available)."""
 
 from __future__ import annotations
 
 import resource
 
 
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MiB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def rss_mb() -> float:
-    """Current resident memory of this process in MiB (Linux ``/proc``; the peak elsewhere)."""
+def _status_mb(field: str) -> float | None:
     try:
         with open("/proc/self/status") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
+                if line.startswith(field + ":"):
                     return int(line.split()[1]) / 1024.0
     except OSError:
         pass
-    return peak_rss_mb()
+    return None
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MiB since it started or since :func:`reset_peak_rss`
+    (``VmHWM``; ``getrusage`` elsewhere, which Linux carries across ``exec``: a spawned child would
+    report its parent's peak)."""
+    hwm = _status_mb("VmHWM")
+    return hwm if hwm is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def rss_mb() -> float:
+    """Current resident memory of this process in MiB (the peak where ``/proc`` is missing)."""
+    rss = _status_mb("VmRSS")
+    return rss if rss is not None else peak_rss_mb()
+
+
+def reset_peak_rss() -> None:
+    """Start a new peak-RSS measurement (Linux: ``/proc/self/clear_refs``); a no-op elsewhere."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass

@@ -22,6 +22,7 @@ The same object runs inline (synchronous mode, tests) or inside the worker proce
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -60,10 +61,13 @@ class BackendConfig:
     loop_information: str = "icp"  # "icp": full 7x7 from the registration (weak directions stay weak);
     # "isotropic": the configured loop sigmas
     worker: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
-    queue_size: int = 16  # bounded inbox of the worker (submap ids + poses only): the front-end blocks when full
+    queue_size: int = 128  # bounded inbox of the worker (ids, camera centres, odometry edge; the points are
+    # on disk): the front-end blocks only when the back-end is this many submaps behind
     worker_threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
-    worker_nice: int = 10  # niceness added to the worker process: the front-end keeps priority
-    inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random far candidate
+    worker_priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
+    # else nice 19); "low": nice 10; "normal"
+    inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
+    # beyond the proximity radius (it goes through verification like any other)
 
 
 @dataclass(frozen=True)
@@ -127,6 +131,7 @@ class Backend:
         self._layer_pose: dict[int, np.ndarray] = {}  # pose each layer was rasterised with
         self._centroid: dict[int, np.ndarray] = {}  # point centroid per submap (submap frame)
         self._version = 0
+        self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
 
     # -- the per-submap step --------------------------------------------------------------------
     def add_submap(self, msg: SubmapMessage) -> PoseSnapshot:
@@ -173,18 +178,21 @@ class Backend:
         self.seconds.append(time.perf_counter() - t_start)
         return self.snapshot()
 
-    def _candidates(self, sid: int, res) -> list[tuple[int, float, float]]:
-        """(match, score, margin): the best ``candidates_per_query`` by place recognition (VLAD-ranked,
-        then covisibility order), plus the ``proximity_candidates`` earlier submaps whose point centroid
-        is nearest in the current estimate (within ``proximity_radius_tiles``): retrieval finds loops the
-        estimate has drifted away from, proximity the ones it has not; verification decides for both."""
+    def _candidates(self, sid: int, res) -> list[tuple[int, float, float, str]]:
+        """(match, score, margin, source): the best ``candidates_per_query`` by place recognition
+        (VLAD-ranked, then covisibility order; source "retrieval"), plus the ``proximity_candidates``
+        earlier submaps whose point centroid is nearest in the current estimate (within
+        ``proximity_radius_tiles``; "proximity"): retrieval finds loops the estimate has drifted away
+        from, proximity the ones it has not; verification decides for both. With
+        ``inject_wrong_candidates`` > 0, that share of queries also gets a random submap from elsewhere
+        ("injected", fault testing)."""
         ranked = [(c.match, c.score) for c in res.candidates]
         seen = {m for m, _ in ranked}
         ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
         out = []
         for k, (m, s) in enumerate(ranked[: self.config.candidates_per_query]):
             nxt = ranked[k + 1][1] if k + 1 < len(ranked) else 0.0
-            out.append((m, s, s - nxt))
+            out.append((m, s, s - nxt, "retrieval"))
         if self.config.proximity_candidates and sid in self._centroid:
             here = transform_points(self.graph.poses[sid], self._centroid[sid][None])[0]
             old = [j for j in self._centroid if j < sid - self.stage.config.index.exclude_recent]
@@ -192,21 +200,27 @@ class Backend:
                 d = np.array([np.linalg.norm(transform_points(self.graph.poses[j], self._centroid[j][None])[0] - here)
                               for j in old])
                 radius = self.config.proximity_radius_tiles * self.stage.grid.tile_size
-                taken = {m for m, _, _ in out}
+                taken = {m for m, *_ in out}
                 for k in np.argsort(d)[: self.config.proximity_candidates]:
                     if d[k] <= radius and old[k] not in taken:
-                        out.append((old[k], 0.0, np.inf))
-                rate = self.config.inject_wrong_candidates
-                far = [j for j, dj in zip(old, d, strict=True) if dj > 2 * radius]
-                rng = np.random.default_rng(sid)
-                if rate > 0 and far and rng.random() < rate:  # fault injection: a candidate from elsewhere
-                    out.append((int(rng.choice(far)), 0.0, np.inf))  # reaches verification
+                        out.append((old[k], 0.0, np.inf, "proximity"))
+                out += self._injected(old, d, radius, {m for m, *_ in out})
         return out
+
+    def _injected(self, old: list[int], dist: np.ndarray, radius: float, taken: set[int]) -> list:
+        """Fault injection: every ``1 / inject_wrong_candidates``-th query gets the nearest earlier submap
+        beyond the proximity radius (a hard negative: close enough to reach registration)."""
+        rate = self.config.inject_wrong_candidates
+        self._queries += 1
+        if rate <= 0 or int(self._queries * rate) == int((self._queries - 1) * rate):
+            return []
+        far = [(dj, j) for j, dj in zip(old, dist, strict=True) if dj > radius and j not in taken]
+        return [(min(far)[1], 0.0, np.inf, "injected")] if far else []
 
     def _verify(self, sid: int, res, points_world: np.ndarray) -> list[LoopResult]:
         grid = self.stage.grid
         accepted = []
-        for match, score, margin in self._candidates(sid, res):
+        for match, score, margin, source in self._candidates(sid, res):
             keys, desc = self.stage.tiles_of(match)
             ia, ib = mutual_matches(res.chip_descriptors, desc)
             chip_uv = self.stage.tile_centers_uv(res.chip_keys[ia])
@@ -215,6 +229,7 @@ class Backend:
             pm = transform_points(T_m, _subsample(self.store.get(match), self.config.registration_max_points))
             r = register_loop(sid, match, points_world, pm, grid.plane, grid.tile_size, self.graph.poses[sid], T_m,
                               chip_uv, tile_uv, score, margin, self.config.registration)
+            r = dataclasses.replace(r, source=source)
             self.loops.append(r)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, residual %.3g, guess %s)",
                      sid, match, r.reason, r.overlap, r.structure_overlap, r.residual, r.guess)

@@ -78,12 +78,13 @@ class LoopResult:
     guess: str  # "odometry", "dem_search" or "planar"
     constraint_ratio: float = 0.0  # weakest / strongest in-plane translation information of the ICP
     information: np.ndarray | None = None  # 7x7, in the pose graph's tangent of T_match_query
+    source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
-                "constraint_ratio": self.constraint_ratio}
+                "constraint_ratio": self.constraint_ratio, "source": self.source}
 
 
 def planar_ransac(src_uv: np.ndarray, dst_uv: np.ndarray, radius: float, iterations: int = 500,

@@ -51,6 +51,25 @@ def _limit_threads(n: int) -> None:
         pass
 
 
+def _lower_priority(priority: str) -> None:
+    """Give the front-end precedence on a busy CPU. Linux applies scheduling per thread, so every thread
+    already running (library pools started at import) is lowered; later ones inherit it."""
+    if priority == "normal":
+        return
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        try:
+            if priority == "idle" and hasattr(os, "SCHED_IDLE"):
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            else:
+                os.setpriority(os.PRIO_PROCESS, tid, 19 if priority == "idle" else 10)
+        except OSError as exc:  # not permitted here: run at normal priority
+            log.debug("could not lower the priority of thread %d: %s", tid, exc)
+
+
 def _plain(snapshot: PoseSnapshot) -> tuple:
     return snapshot.version, dict(snapshot.poses), snapshot.loops_accepted, snapshot.last_submap, snapshot.rss_mb
 
@@ -66,7 +85,7 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
     """The worker process: build the back-end, then one snapshot per message until ``None``."""
     parent = os.getppid()
     try:
-        os.nice(config.worker_nice)  # the front-end keeps priority on a busy CPU
+        _lower_priority(config.worker_priority)
         _limit_threads(config.worker_threads)
         backend = Backend(config, SubmapStore(folder, config.cache_submaps))
         outbox.put(("ready", None))
@@ -87,8 +106,12 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
 
 
-def _start_without_main(proc) -> None:
-    """Start a ``spawn`` process without re-running the caller's ``__main__`` in it.
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _start_without_main(proc, threads: int) -> None:
+    """Start a ``spawn`` process without re-running the caller's ``__main__`` in it, with its BLAS and
+    OpenMP pools sized to ``threads`` (read once, at the child's imports).
 
     ``spawn`` normally re-imports the main script in the child, which fails (or re-runs the work) when a
     user's script calls :func:`vggt_slam_pp.pipeline.run` without an ``if __name__ == "__main__"`` guard.
@@ -97,13 +120,20 @@ def _start_without_main(proc) -> None:
     """
     main = sys.modules.get("__main__")
     saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    env = {k: os.environ.get(k) for k in _THREAD_VARIABLES}
     try:
         for k in saved:
             setattr(main, k, None) if k == "__spec__" else delattr(main, k)
+        os.environ.update(dict.fromkeys(_THREAD_VARIABLES, str(threads)))  # BLAS / OpenMP pools of the child
         proc.start()
     finally:
         for k, v in saved.items():
             setattr(main, k, v)
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 class BackendWorker:
@@ -132,7 +162,7 @@ class BackendWorker:
         self._outbox = ctx.Queue()
         self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox),
                                  name="vggt-slam-pp-backend", daemon=True)
-        _start_without_main(self._proc)
+        _start_without_main(self._proc, config.worker_threads)
         self._backend = None
         self._await(lambda kind: kind == "ready", start_timeout_s, "start")
 

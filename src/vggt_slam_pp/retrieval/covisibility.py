@@ -161,7 +161,7 @@ class CovisibilityStage:
 
     def _insert(self, submap_id: int, d: _Described) -> None:
         self.index.add(submap_id, d.keys[d.usable], d.tiles[d.usable])
-        self._tile_cells[submap_id] = (d.vfeats, d.usable, d.cpt)
+        self._tile_cells[submap_id] = (d.vfeats.astype(np.float16), d.usable, d.cpt)  # compact: RAM stays low
         self._tile_vlads.pop(submap_id, None)
 
     def _vlad_count(self) -> int:
@@ -184,7 +184,7 @@ class CovisibilityStage:
     def _vlads_of(self, submap_id: int) -> np.ndarray:
         if submap_id not in self._tile_vlads:
             vfeats, usable, cpt = self._tile_cells[submap_id]
-            v = tile_vlads(vfeats, self.vocab, cpt, self.config.vlad_context_tiles)
+            v = tile_vlads(vfeats.astype(np.float32), self.vocab, cpt, self.config.vlad_context_tiles)
             tr, tc = usable.shape
             if len(self._tile_vlads) >= self.config.vlad_cache_submaps:
                 self._tile_vlads.pop(next(iter(self._tile_vlads)))

@@ -107,12 +107,15 @@ def _height_colors(h: np.ndarray) -> np.ndarray:
     return height_ramp(np.clip((h - lo) / max(hi - lo, 1e-9), 0, 1)).astype(np.uint8)
 
 
-def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store: SubmapStore, per_submap: int) -> None:
+def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store: SubmapStore, per_submap: int,
+               max_side_px: int = 4096) -> None:
+    """``map.ply`` and the fused DEM. The DEM keeps the back-end's resolution unless the map is larger than
+    ``max_side_px`` pixels on a side; then it is exported at an integer multiple of it (a city-scale run
+    would otherwise need gigabytes for one image)."""
     if backend.plane is None or backend.mpp is None:
         return
     plane = GroundPlane.from_dict(backend.plane)
-    grid = DemGrid(plane, backend.mpp, int(round(backend.tile_size / backend.mpp)))
-    clouds, layers = [], []
+    clouds, lo, hi = [], np.full(2, np.inf), np.full(2, -np.inf)
     for sm in result.submaps:
         pts = store.get(sm.id)
         if len(pts) == 0:
@@ -120,10 +123,21 @@ def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store:
         world = transform_points(backend.poses[sm.id], pts)
         sel = world if len(world) <= per_submap else world[np.linspace(0, len(world) - 1, per_submap).astype(int)]
         clouds.append(sel.astype(np.float32))
-        layer = rasterize(world, grid, sm.id)
-        layers.append((layer.origin_px, layer.heights.astype(np.float16)))
+        uv = plane.to_canonical(sel)[:, :2]
+        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
     if not clouds:
         return
+    factor = max(1, int(np.ceil(float(np.max(hi - lo)) / backend.mpp / max_side_px)))
+    tile_px = int(round(backend.tile_size / backend.mpp))
+    grid = DemGrid(plane, backend.mpp * factor, max(1, tile_px // factor))
+    if factor > 1:
+        log.info("DEM export at %.3f m/px (%dx the back-end's) to stay within %d px", grid.mpp, factor, max_side_px)
+    layers = []
+    for sm in result.submaps:
+        pts = store.get(sm.id)
+        if len(pts):
+            layer = rasterize(transform_points(backend.poses[sm.id], pts), grid, sm.id)
+            layers.append((layer.origin_px, layer.heights.astype(np.float16)))
     cloud = np.concatenate(clouds)
     colors = _height_colors(plane.to_canonical(cloud)[:, 2])
     _write_ply(out / "map.ply", cloud, colors)

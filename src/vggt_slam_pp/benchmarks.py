@@ -296,11 +296,12 @@ def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: i
                                   scene_options={"length": 60.0 * k, "width": 40.0 * k}), seq)
     t0 = time.perf_counter()
     report = run(open_source(seq), _synthetic_run_config(seed), Path(workdir) / f"run_{frames}_{seed}")
-    trace = np.array(report["memory_trace"], float)  # (submaps, front-end MiB, back-end MiB)
+    # each process is read when *it* had handled n submaps (the back-end may lag behind the front-end)
+    front = np.array(report["memory_trace"]["frontend"], float)
+    back = np.array(report["memory_trace"]["backend"], float)
 
     def at(n: int) -> float:
-        row = trace[np.argmin(np.abs(trace[:, 0] - n))]
-        return float(row[1] + row[2])
+        return float(front[np.argmin(np.abs(front[:, 0] - n)), 1] + back[np.argmin(np.abs(back[:, 0] - n)), 1])
 
     out = {"submaps": report["submaps"], "frames": report["frames"], "seconds": time.perf_counter() - t0,
            "rss_mb_at_50": at(50), "rss_mb_at_300": at(300), "peak_rss_mb": report["peak_rss_mb"],

@@ -171,7 +171,8 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     if worker is not None:
         report["backend_mode"] = worker.mode
         report["backend_queue_wait_s"] = worker.wait_s
-        report["memory_trace"] = feeder.memory_trace
+        report["memory_trace"] = {"frontend": feeder.memory_trace,
+                                  "backend": backend_result.memory_trace if backend_result is not None else []}
         report["backend_max_lag_submaps"] = feeder.max_lag
     # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
     # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
@@ -195,8 +196,8 @@ class _BackendFeeder:
         self.sent = 0
         self.seconds = 0.0
         self._written = (-1, -1)
-        # every ``trace_every`` submaps: (submaps sent, front-end RSS MiB, back-end RSS MiB at its last snapshot)
-        self.memory_trace: list[tuple[int, float, float]] = []
+        # every ``trace_every`` submaps sent: (submaps sent, front-end RSS MiB)
+        self.memory_trace: list[tuple[int, float]] = []
         self.trace_every = 10
         self.max_lag = 0  # most submaps the back-end was behind the front-end at a hand-over
 
@@ -220,8 +221,7 @@ class _BackendFeeder:
             write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
             self._written = (snap.version, snap.last_submap)
         if self.sent // self.trace_every > len(self.memory_trace):
-            backend_rss = snap.rss_mb if snap is not None and self.worker.mode == "process" else 0.0
-            self.memory_trace.append((self.sent, rss_mb(), backend_rss))
+            self.memory_trace.append((self.sent, rss_mb()))
         self.seconds += time.perf_counter() - t
 
 

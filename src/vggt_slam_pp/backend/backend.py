@@ -103,6 +103,7 @@ class BackendResult:
     tile_size: float | None
     mpp: float | None
     peak_rss_mb: float = 0.0  # of the back-end's process
+    memory_trace: list = field(default_factory=list)  # (submaps done, RSS MiB of the back-end's process)
 
 
 def _subsample(points: np.ndarray, n: int) -> np.ndarray:
@@ -131,6 +132,7 @@ class Backend:
         self._layer_pose: dict[int, np.ndarray] = {}  # pose each layer was rasterised with
         self._centroid: dict[int, np.ndarray] = {}  # point centroid per submap (submap frame)
         self._version = 0
+        self.memory_trace: list[tuple[int, float]] = []
         self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
 
     # -- the per-submap step --------------------------------------------------------------------
@@ -176,7 +178,10 @@ class Backend:
             window = None if far else self._window(sid, [r.match for r in accepted])
             self._optimize(window)
         self.seconds.append(time.perf_counter() - t_start)
-        return self.snapshot()
+        snap = self.snapshot()
+        if len(self.seconds) % 10 == 0:
+            self.memory_trace.append((len(self.seconds), snap.rss_mb))
+        return snap
 
     def _candidates(self, sid: int, res) -> list[tuple[int, float, float, str]]:
         """(match, score, margin, source): the best ``candidates_per_query`` by place recognition
@@ -299,4 +304,5 @@ class Backend:
             odometry_poses=dict(self.odometry_poses), edges=edges, covisibility=list(self.covisibility),
             loops=[r.to_dict() for r in self.loops], seconds_per_submap=list(self.seconds),
             timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
-            tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None)
+            tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,
+            memory_trace=list(self.memory_trace))

@@ -314,13 +314,13 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             guesses["planar"] = planar_to_world(plane, T2)
     # cheap early exit: footprints further apart than the search reaches (most wrong candidates)
     reach = (c.search_max_shift_tiles + c.icp_radius_tiles) * unit
-    uv_dst = plane.to_canonical(dst)[:, :2]
-    lo, hi = uv_dst.min(0) - reach, uv_dst.max(0) + reach
+    c_dst = plane.to_canonical(dst)
+    lo, hi = c_dst[:, :2].min(0) - reach, c_dst[:, :2].max(0) + reach
     if not any(np.any(np.all((uv >= lo) & (uv <= hi), axis=1))
                for uv in (plane.to_canonical(transform_points(G, src))[:, :2] for G in guesses.values())):
         return reject("footprints too far apart in the current estimate", planar_inliers=n_planar)
     tree = cKDTree(dst)
-    h_dst = plane.to_canonical(dst)[:, 2]
+    h_dst = c_dst[:, 2]
     ground = float(np.median(h_dst))
     struct_dst = dst[h_dst > ground + c.structure_height_tiles * unit]
     struct_tree = cKDTree(struct_dst) if len(struct_dst) >= c.min_structure_points else None

@@ -110,9 +110,54 @@ def test_voting_excludes_recent_neighbours(rng):
     chips = np.r_[np.repeat(centres[1:2], 8, 0), np.repeat(centres[5:6], 8, 0)]  # revisits 1, and looks like 5
     edges = index.vote(6, chips)
     assert [e.match for e in edges] == [1]  # 5 (and 4, 6) are recent neighbours of query 6
-    assert edges[0].score > 0.4 and edges[0].votes == 40
+    assert edges[0].votes == 8 and 0.45 < edges[0].score <= 0.5  # one vote per chip: ~cos 1 x 8 / 16 chips
     assert index.vote(6, np.zeros((0, dim), np.float32)) == []
+    every_tile = TileIndex(dim, IndexConfig(k=5, exclude_recent=2, top_k=3, one_vote_per_submap=False))
+    every_tile.index, every_tile.keys, every_tile.alive = index.index, index.keys, index.alive
+    assert every_tile.vote(6, chips)[0].votes == 40  # all 5 nearest tiles of each chip lie in submap 1
 
+
+def test_one_vote_per_submap_stops_a_hub_layer(rng):
+    """A layer with many near-identical tiles takes every neighbour of a chip; counted once per chip, it
+    no longer outscores the submap that matches every chip."""
+    dim = 32
+    a, b = rng.normal(size=(2, dim)).astype(np.float32)
+    hub = a + 0.6 * b
+    hub /= np.linalg.norm(hub)
+    index = TileIndex(dim, IndexConfig(k=10, exclude_recent=0))
+    index.add(0, np.zeros((1, 2), int), (a / np.linalg.norm(a))[None])  # the true place: one tile
+    noisy = hub + 0.01 * rng.normal(size=(30, dim)).astype(np.float32)
+    index.add(1, np.zeros((30, 2), int), noisy / np.linalg.norm(noisy, axis=1, keepdims=True))
+    chips = np.repeat((a / np.linalg.norm(a))[None], 4, 0)
+    assert index.vote(5, chips)[0].match == 0
+    index.config = IndexConfig(k=10, exclude_recent=0, one_vote_per_submap=False)
+    assert index.vote(5, chips)[0].match == 1  # the old rule: 9 hub tiles x cos 0.86 beat one exact tile
+
+
+def test_relocations_compact_the_index(rng):
+    """Re-inserting re-rasterised layers retires old tiles; once they outnumber the live ones the graph
+    is rebuilt: the index size follows the map and searches see exactly the live tiles."""
+    dim = 16
+    index = TileIndex(dim, IndexConfig(compact_min_dead=50))
+    tiles = {}
+    for s in range(5):
+        tiles[s] = _clustered(rng, 40, dim, seed=s)
+        index.add(s, np.c_[np.arange(40), np.full(40, s)], tiles[s])
+    for rnd in range(6):  # every layer relocated six times: new descriptors, same keys
+        for s in range(5):
+            tiles[s] = _clustered(np.random.default_rng(100 * rnd + s), 40, dim, seed=s)
+            index.remove_submap(s)
+            index.add(s, np.c_[np.arange(40), np.full(40, s)], tiles[s])
+    assert index.compactions >= 2
+    assert len(index) <= 2 * 200 + 50  # never more than live + max(live, min dead) + one layer
+    keys, desc = index.tiles_of(3)
+    assert np.array_equal(keys, np.c_[np.arange(40), np.full(40, 3)])
+    assert np.allclose(desc, tiles[3], atol=1e-6)
+    sims, ids = index.search(tiles[2][:5], 1)  # a live tile finds itself
+    assert np.allclose(sims[:, 0], 1.0, atol=1e-5)
+    assert np.array_equal(index.keys[ids[:, 0]], np.c_[np.full(5, 2), np.arange(5), np.full(5, 2)])
+    edges = index.vote(9, tiles[1])
+    assert edges[0].match == 1 and edges[0].votes > 0
 
 def test_vlad_on_hand_made_descriptors():
     vocab = Vocabulary(np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]), trained_on=3)
@@ -162,3 +207,61 @@ def test_benchmarks_run_small():
     assert d["points_per_s"] > 0 and d["ratio_to_count_baseline"] > 0 and d["layer_shape"][0] > 0
     r = bench_retrieval(n_large=3000, n_small=1000, dim=32, queries=50)
     assert 0.9 <= r["recall_at_10"] <= 1.0 and r["latency_ratio_100k_10k"] > 0
+
+
+def _walls(rng, n_walls=6, extent=30.0):
+    """A random asymmetric structure layout: wall segments as dense (u, v) samples [N,2] (metres)."""
+    pts = []
+    for _ in range(n_walls):
+        a, ang, length = rng.uniform(0, extent, 2), rng.uniform(0, np.pi), rng.uniform(3, 10)
+        t = np.linspace(0, length, int(length / 0.1))
+        pts.append(a + t[:, None] * np.array([np.cos(ang), np.sin(ang)]))
+    return np.concatenate(pts)
+
+
+def _structure_of(uv, cell=0.5):
+    from vggt_slam_pp.vpr import Structure
+
+    keys, counts = np.unique(np.floor(uv / cell).astype(int), axis=0, return_counts=True)
+    return Structure(((keys + 0.5) * cell).astype(np.float32), counts.astype(np.float32))
+
+
+def test_layer_structure_finds_the_box_not_the_ground():
+    from vggt_slam_pp.dem import DemLayer
+    from vggt_slam_pp.vpr import layer_structure
+
+    h = np.random.default_rng(0).normal(0, 0.02, (280, 280)).astype(np.float32)  # 20 m x 20 m, ground noise
+    h[:20] = np.nan  # an empty strip
+    h[140:168, 56:84] = 3.0  # a 2 m x 2 m box, 3 m high
+    layer = DemLayer(0, h, np.ones(h.shape, np.int32), (28, 56), 2.0 / 28, 28)
+    s = layer_structure(layer, 2.0)
+    assert len(s) == 16  # 2 m x 2 m at 0.5 m cells
+    origin = np.array([28, 56]) * 2.0 / 28
+    assert np.allclose(s.uv.min(0), origin + [4.25, 10.25]) and np.allclose(s.uv.max(0), origin + [5.75, 11.75])
+    flat = DemLayer(1, np.zeros((56, 56), np.float32), np.ones((56, 56), np.int32), (0, 0), 2.0 / 28, 28)
+    assert len(layer_structure(flat, 2.0)) == 0
+
+
+def test_structure_match_recovers_yaw_and_shift_and_reranks(rng):
+    from vggt_slam_pp.vpr import LoopCandidate, match_structure, rerank_candidates
+
+    place = _walls(rng)
+    yaw = np.radians(8.0)
+    R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    c = place.mean(0)
+    seen_again = (place - c) @ R.T + c + np.array([2.5, -1.5])  # the revisit, drifted by 8 deg and 2.9 m
+    q, m = _structure_of(seen_again), _structure_of(place)
+    g = match_structure(q, m, 2.0)
+    assert g.score > 0.8 and abs(g.yaw_deg + 8.0) <= 2.0
+    a = np.radians(g.yaw_deg)
+    Rg = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    centre = np.average(q.uv, axis=0, weights=q.weight)
+    back = (seen_again - centre) @ Rg.T + centre + g.shift
+    assert np.median(np.linalg.norm(back - place, axis=1)) < 0.7  # within ~a correlation cell
+    elsewhere = _structure_of(_walls(np.random.default_rng(99)))
+    assert match_structure(q, elsewhere, 2.0).score < g.score - 0.2
+    # VLAD liked the look-alike better; the layout check puts the true place first
+    ranked = rerank_candidates(7, q, {1: m, 2: elsewhere}, [LoopCandidate(7, 2, 0.9, 30), LoopCandidate(7, 1, 0.5, 10)],
+                               2.0)
+    assert [r.match for r in ranked] == [1, 2] and ranked[0].score == 0.5 and ranked[0].geometry == g.score
+    assert match_structure(_structure_of(place[:5]), m, 2.0).score == 0.0  # too little structure

@@ -37,3 +37,19 @@ def reset_peak_rss() -> None:
             f.write("5")
     except OSError:
         pass
+
+
+def release_free_memory() -> None:
+    """Hand freed heap pages back to the OS (glibc ``malloc_trim``; a no-op elsewhere). Bursts of
+    temporary arrays (re-rasterising many layers after a global optimisation) otherwise leave the
+    process's RSS at its high-water mark."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        if libc is not None and hasattr(libc, "malloc_trim"):
+            libc.malloc_trim(0)
+    except OSError:
+        pass

@@ -36,7 +36,7 @@ from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError
 from vggt_slam_pp.frontend.types import OdometryEdge
 from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
-from vggt_slam_pp.resources import rss_mb
+from vggt_slam_pp.resources import release_free_memory, rss_mb
 from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
 
 log = logging.getLogger(__name__)
@@ -263,6 +263,7 @@ class Backend:
         self._version += 1
         t0 = time.perf_counter()
         thr = self.config.relocate_min_shift_tiles * (self.stage.grid.tile_size if self.stage.grid else 1.0)
+        moved = 0
         for i, T in self.graph.poses.items():
             if i not in self._layer_pose or i not in self._extent:
                 continue
@@ -273,6 +274,9 @@ class Backend:
             if shift >= thr:
                 self.stage.relocate(i, transform_points(T, _subsample(self.store.get(i), self.config.dem_max_points)))
                 self._layer_pose[i] = T.copy()
+                moved += 1
+        if moved:
+            release_free_memory()
         self.timings["relocate_s"] += time.perf_counter() - t0
 
     # -- outputs --------------------------------------------------------------------------------

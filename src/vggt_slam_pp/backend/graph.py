@@ -83,6 +83,8 @@ class PoseGraph:
     """Owns the poses and edges; not thread-safe (the back-end worker alone touches it)."""
 
     def __init__(self, config: GraphConfig | None = None) -> None:
+        import gtsam  # noqa: F401  - loaded now, not at the first loop (~40 MB: a step in the memory trace)
+
         self.config = config or GraphConfig()
         self.poses: dict[int, np.ndarray] = {}
         self.edges: list[Edge] = []

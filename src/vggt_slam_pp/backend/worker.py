@@ -36,19 +36,18 @@ log = logging.getLogger(__name__)
 MODES = ("process", "inline")
 
 
-def _limit_threads(n: int) -> None:
-    """Keep the worker's libraries to ``n`` threads so the front-end keeps its cores."""
+def _limit_threads(n: int, with_torch: bool) -> None:
+    """Keep the worker's libraries to ``n`` threads so the front-end keeps its cores. torch is imported
+    only for an encoder that needs it (it alone adds ~180 MB to the process)."""
     import cv2
     import faiss
 
     cv2.setNumThreads(n)
     faiss.omp_set_num_threads(n)
-    try:
+    if with_torch:
         import torch
 
         torch.set_num_threads(n)
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
 
 
 def _lower_priority(priority: str) -> None:
@@ -86,7 +85,7 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
     parent = os.getppid()
     try:
         _lower_priority(config.worker_priority)
-        _limit_threads(config.worker_threads)
+        _limit_threads(config.worker_threads, config.encoder != "hog")
         backend = Backend(config, SubmapStore(folder, config.cache_submaps))
         outbox.put(("ready", None))
         while True:

@@ -6,7 +6,8 @@
    fixed by the first submap);
 2. encode the layer's encoder image once (dense patch features) and compute the gradient weights;
 3. chips (window = whole layer) vote in the HNSW gallery -> covisibility edges;
-4. VLAD of the chips against the tiles of the covisible submaps -> ranked loop candidates;
+4. VLAD of the chips against the tiles of the covisible submaps, then every covisible submap re-ranked
+   by DEM structure correlation over yaw and shift (:mod:`vggt_slam_pp.vpr.geometry`) -> loop candidates;
 5. insert the layer's tiles (descriptors and VLADs) into the gallery; refresh the VLAD vocabulary as
    the gallery grows.
 
@@ -27,6 +28,7 @@ from vggt_slam_pp.errors import RetrievalError
 from vggt_slam_pp.retrieval.descriptors import aggregate, cell_weights
 from vggt_slam_pp.retrieval.encoders import Encoder
 from vggt_slam_pp.retrieval.index import CovisibilityEdge, IndexConfig, TileIndex
+from vggt_slam_pp.vpr.geometry import GeometryConfig, Structure, layer_structure, rerank_candidates
 from vggt_slam_pp.vpr.vlad import LoopCandidate, Vocabulary, rank_candidates, tile_vlads
 
 log = logging.getLogger(__name__)
@@ -40,8 +42,10 @@ class CovisibilityConfig:
     vlad_clusters: int = 32
     vlad_context_tiles: int = 3
     vlad_min_score: float = 0.0
-    vlad_sample: int = 100_000  # features kept for (re)training the vocabulary
-    vlad_cache_submaps: int = 64  # tile VLADs cached for this many submaps (LRU-ish)
+    vlad_sample: int = 50_000  # features kept (float16) for (re)training the vocabulary
+    vlad_cache_submaps: int = 16  # tile VLADs cached for this many submaps (oldest first out)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    rerank: bool = True  # candidates = the covisible submaps ranked by structure correlation (VLAD breaks ties)
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,6 +59,7 @@ class _Described:
     usable: np.ndarray  # [Tr, Tc] tiles entering the gallery
     chip_ok: np.ndarray  # [Tr, Tc] chips that query
     keys: np.ndarray  # [Tr, Tc, 2] global tile keys
+    structure: Structure  # for geometric re-ranking
 
 
 @dataclass
@@ -78,6 +83,7 @@ class CovisibilityStage:
         self._vlad_cells: list[np.ndarray] = []
         self._tile_vlads: dict[int, np.ndarray] = {}
         self._tile_cells: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # features, usable tiles, cells/tile
+        self._structure: dict[int, Structure] = {}
         self._vlad_seen = 0
 
     def _ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
@@ -105,7 +111,8 @@ class CovisibilityStage:
         tr, tc = tiles.shape[:2]
         usable = (occ[:tr, :tc] >= c.min_occupancy) & (np.linalg.norm(tiles, axis=2) > 0)
         chip_ok = usable & (np.linalg.norm(chips, axis=2) > 0)
-        return _Described(layer, vfeats, m, cpt, tiles, chips, usable, chip_ok, _keys(layer, tr, tc))
+        return _Described(layer, vfeats, m, cpt, tiles, chips, usable, chip_ok, _keys(layer, tr, tc),
+                          layer_structure(layer, self.grid.tile_size, c.geometry))
 
     def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
                 median_depth: float | None = None) -> StageResult:
@@ -134,8 +141,14 @@ class CovisibilityStage:
             candidates = rank_candidates(submap_id, q, gallery, c.vlad_min_score)
         t["vlad_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        if c.rerank and edges:
+            structures = {e.match: self._structure[e.match] for e in edges if e.match in self._structure}
+            candidates = rerank_candidates(submap_id, d.structure, structures, candidates, self.grid.tile_size,
+                                           c.geometry)
+        t["rerank_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         self._insert(submap_id, d)
-        self._vlad_cells.append(d.vfeats[d.m > 0].reshape(-1, d.vfeats.shape[2]))
+        self._vlad_cells.append(d.vfeats[d.m > 0].reshape(-1, d.vfeats.shape[2]).astype(np.float16))
         self._cap_vlad_cells()
         if self.vocab is not None and self.vocab.needs_refresh(self._vlad_seen):
             self._train_vocabulary()
@@ -162,6 +175,7 @@ class CovisibilityStage:
     def _insert(self, submap_id: int, d: _Described) -> None:
         self.index.add(submap_id, d.keys[d.usable], d.tiles[d.usable])
         self._tile_cells[submap_id] = (d.vfeats.astype(np.float16), d.usable, d.cpt)  # compact: RAM stays low
+        self._structure[submap_id] = d.structure
         self._tile_vlads.pop(submap_id, None)
 
     def _vlad_count(self) -> int:
@@ -177,7 +191,7 @@ class CovisibilityStage:
             self._vlad_cells = [x[np.sort(keep)]]
 
     def _train_vocabulary(self) -> None:
-        self.vocab = Vocabulary.train(np.concatenate(self._vlad_cells), self.config.vlad_clusters)
+        self.vocab = Vocabulary.train(np.concatenate(self._vlad_cells).astype(np.float32), self.config.vlad_clusters)
         self.vocab.trained_on = max(self._vlad_seen, 1)
         self._tile_vlads = {}
 

@@ -2,8 +2,8 @@
 vectors) with an id map to (submap, Iu, Iv), incremental insertion, save/load, and submap voting
 (SPEC 3.8).
 
-Voting: for each query chip the ``k`` nearest tiles each add their cosine to their parent submap's
-score; the query's own submap and its ``exclude_recent`` most recent predecessors are excluded;
+Voting: for each query chip the ``k`` nearest tiles add their cosine to their parent submap's score, one
+vote per submap and chip (its best tile there); the query's own submap and its ``exclude_recent`` most recent predecessors are excluded;
 scores are divided by the number of chips (so they are comparable across queries); the submaps with
 a score >= ``tau_s``, at most the top ``top_k`` = 10, become covisibility edges.
 """
@@ -27,10 +27,13 @@ class IndexConfig:
     hnsw_m: int = 32
     ef_construction: int = 80
     ef_search: int = 128
-    k: int = 10  # tiles per chip
+    k: int = 20  # nearest tiles per chip
+    one_vote_per_submap: bool = True  # a chip votes once per submap (its best tile there): a layer with many
+    # look-alike tiles (open ground, a long wall) no longer collects all of a chip's votes
     top_k: int = 10  # covisible submaps per query (K)
     tau_s: float = 0.0  # minimum normalised vote score
     exclude_recent: int = 2
+    compact_min_dead: int = 1000  # rebuild once retired tiles exceed this and the live ones
 
 
 @dataclass(frozen=True)
@@ -45,15 +48,19 @@ class TileIndex:
     """HNSW gallery of L2-normalised tile descriptors of dimension ``dim``."""
 
     def __init__(self, dim: int, config: IndexConfig | None = None, encoder: str = "") -> None:
+        self.dim, self.config, self.encoder = int(dim), config or IndexConfig(), encoder
+        self.index = self._new_index()
+        self.keys = np.zeros((0, 3), np.int64)  # id -> (submap, Iu, Iv)
+        self.alive = np.zeros(0, bool)  # False for tiles of a re-rasterised layer (HNSW cannot delete)
+        self.compactions = 0
+
+    def _new_index(self):
         import faiss
 
-        self.dim, self.config, self.encoder = int(dim), config or IndexConfig(), encoder
         hnsw = faiss.IndexHNSWFlat(self.dim, self.config.hnsw_m, faiss.METRIC_INNER_PRODUCT)
         hnsw.hnsw.efConstruction = self.config.ef_construction
         hnsw.hnsw.efSearch = self.config.ef_search
-        self.index = faiss.IndexIDMap2(hnsw)
-        self.keys = np.zeros((0, 3), np.int64)  # id -> (submap, Iu, Iv)
-        self.alive = np.zeros(0, bool)  # False for tiles of a re-rasterised layer (HNSW cannot delete)
+        return faiss.IndexIDMap2(hnsw)
 
     def __len__(self) -> int:
         return int(self.index.ntotal)
@@ -76,10 +83,35 @@ class TileIndex:
         self.alive = np.r_[self.alive, np.ones(len(d), bool)]
 
     def remove_submap(self, submap_id: int) -> int:
-        """Retire a submap's tiles (before re-inserting its re-rasterised layer); returns how many."""
+        """Retire a submap's tiles (before re-inserting its re-rasterised layer); returns how many.
+        HNSW cannot delete: retired tiles stay in the graph, skipped by searches, until they outnumber
+        the live ones; then the index is rebuilt from the live tiles (:meth:`compact`), so memory and
+        search time follow the map, not the number of relocations."""
         dead = (self.keys[:, 0] == submap_id) & self.alive
         self.alive[dead] = False
+        n_dead = len(self.alive) - int(self.alive.sum())
+        if n_dead > max(int(self.alive.sum()), self.config.compact_min_dead):
+            self.compact()
         return int(dead.sum())
+
+    def compact(self) -> None:
+        """Rebuild the HNSW graph from the live tiles only (ids renumbered, keys kept)."""
+        import faiss
+
+        live = np.nonzero(self.alive)[0]
+        vectors = np.zeros((0, self.dim), np.float32)
+        if len(live):
+            internal = faiss.vector_to_array(self.index.id_map)  # internal position -> id
+            everything = self.index.index.reconstruct_n(0, self.index.ntotal)
+            pos = np.empty(len(internal), np.int64)
+            pos[internal] = np.arange(len(internal))
+            vectors = everything[pos[live]]
+        self.index = self._new_index()
+        if len(live):
+            self.index.add_with_ids(np.ascontiguousarray(vectors), np.arange(len(live), dtype=np.int64))
+        log.debug("tile index compacted: %d dead tiles dropped, %d kept", len(self.alive) - len(live), len(live))
+        self.keys, self.alive = self.keys[live], np.ones(len(live), bool)
+        self.compactions += 1
 
     def tiles_of(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
         """The live tiles of a submap: keys [T,2] (Iu, Iv) and descriptors [T,dim]."""
@@ -105,6 +137,9 @@ class TileIndex:
         ok &= np.cumsum(ok, axis=1) <= c.k  # the k best live tiles per chip
         submaps = np.where(ok, self.keys[np.maximum(ids, 0), 0], -1)
         excluded = (submaps < 0) | (submaps >= query_submap - c.exclude_recent)
+        if c.one_vote_per_submap:  # a chip's later hits in a submap it already voted for do not count
+            for col in range(1, submaps.shape[1]):
+                excluded[:, col] |= (submaps[:, :col] == submaps[:, col:col + 1]).any(axis=1)
         sims = np.where(excluded, 0.0, np.maximum(sims, 0.0))
         if not (~excluded).any():
             return []

@@ -1,5 +1,14 @@
-"""Place recognition inside the covisibility window: AnyLoc-style VLAD."""
+"""Place recognition inside the covisibility window: AnyLoc-style VLAD, then geometric re-ranking."""
 
+from vggt_slam_pp.vpr.geometry import (
+           GeometricMatch,
+           GeometryConfig,
+           Structure,
+           layer_structure,
+           match_structure,
+           rerank_candidates,
+)
 from vggt_slam_pp.vpr.vlad import LoopCandidate, Vocabulary, rank_candidates, tile_vlads, vlad
 
-__all__ = ["LoopCandidate", "Vocabulary", "rank_candidates", "tile_vlads", "vlad"]
+__all__ = ["GeometricMatch", "GeometryConfig", "LoopCandidate", "Structure", "Vocabulary", "layer_structure",
+           "match_structure", "rank_candidates", "rerank_candidates", "tile_vlads", "vlad"]

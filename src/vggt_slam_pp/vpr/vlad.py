@@ -89,8 +89,9 @@ def tile_vlads(cell_features: np.ndarray, vocab: Vocabulary, cells_per_tile: int
 class LoopCandidate:
     query: int
     match: int
-    score: float
+    score: float  # VLAD: summed best-tile cosines / chips
     votes: int
+    geometry: float = -1.0  # structure correlation in [0, 1] (vpr.geometry); -1 when not checked
 
 
 def rank_candidates(query_submap: int, chip_vlads: np.ndarray, gallery: dict[int, np.ndarray],

@@ -87,16 +87,22 @@ def hillshade_rgb(heights: np.ndarray, azimuth_deg: float = 315.0, altitude_deg:
     n = normalized_heights(heights)
     valid = np.isfinite(n)
     z = np.where(valid, heights, np.nanmedian(heights) if valid.any() else 0.0).astype(np.float32)
-    gx = cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / (8 * mpp)
-    gy = cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / (8 * mpp)
-    normal = np.dstack([-gx, -gy, np.ones_like(gx)])
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    gx = cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / np.float32(8 * mpp)
+    gy = cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / np.float32(8 * mpp)
     az, alt = np.radians(azimuth_deg), np.radians(altitude_deg)
-    light = np.array([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az), np.sin(alt)])
-    shade = np.clip(normal @ light, 0.0, 1.0)
-    rgb = height_ramp(np.nan_to_num(n, nan=0.0)) * (0.35 + 0.65 * shade[..., None])
-    rgb[~valid] = 255
-    return np.clip(rgb, 0, 255).astype(np.uint8)
+    light = np.array([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az), np.sin(alt)], np.float32)
+    # Lambert with the unit normal (-gx, -gy, 1) / |.|, one float32 image at a time (city-scale DEMs)
+    shade = (light[2] - light[0] * gx - light[1] * gy) / np.sqrt(gx * gx + gy * gy + 1.0)
+    del gx, gy
+    shade = np.float32(0.35) + np.float32(0.65) * np.clip(shade, 0.0, 1.0)
+    t = np.nan_to_num(n, nan=0.0)
+    ramp = height_ramp(np.zeros(1)), height_ramp(np.ones(1))
+    rgb = np.empty((*heights.shape, 3), np.uint8)
+    for ch in range(3):
+        low, high = np.float32(ramp[0][0, ch]), np.float32(ramp[1][0, ch])
+        rgb[..., ch] = np.clip(((1 - t) * low + t * high) * shade, 0, 255).astype(np.uint8)
+        rgb[..., ch][~valid] = 255
+    return rgb
 
 
 def export_dem(folder: str | Path, heights: np.ndarray, mpp: float, plane: GroundPlane,

@@ -154,6 +154,7 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
                   len(frontend.submaps))
         result = FrontendResult(frontend.submaps, frontend.edges, chain(frontend.edges), frontend.decisions,
                                 dict(frontend.timings)) if frontend.submaps else None
+        feeder.flush()
         if worker is not None:
             worker.close()
     finally:
@@ -200,6 +201,11 @@ class _BackendFeeder:
         self.memory_trace: list[tuple[int, float]] = []
         self.trace_every = 10
         self.max_lag = 0  # most submaps the back-end was behind the front-end at a hand-over
+        # keyframes.txt is rewritten (all keyframes) at most this often: every snapshot made long runs
+        # quadratic (316 submaps: 30 s of the front-end's time); flush() writes the newest at the end
+        self.write_interval_s = 2.0
+        self._latest = None
+        self._last_write = -np.inf
 
     def feed(self) -> None:
         if self.worker is None:
@@ -216,13 +222,31 @@ class _BackendFeeder:
             self.sent += 1
         self.frontend.release_points(keep_last=1)
         snap = self.worker.latest()
+        self._latest = snap or self._latest
         self.max_lag = max(self.max_lag, self.sent - (snap.last_submap + 1 if snap is not None else 0))
-        if snap is not None and (snap.version, snap.last_submap) != self._written:
-            write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
-            self._written = (snap.version, snap.last_submap)
+        if time.perf_counter() - self._last_write >= self.write_interval_s:
+            self._write_latest()
         if self.sent // self.trace_every > len(self.memory_trace):
             self.memory_trace.append((self.sent, rss_mb()))
         self.seconds += time.perf_counter() - t
+
+
+    def _write_latest(self) -> None:
+        snap = self._latest
+        if snap is not None and (snap.version, snap.last_submap) != self._written:
+            write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
+            self._written = (snap.version, snap.last_submap)
+            self._last_write = time.perf_counter()
+
+    def flush(self) -> None:
+        """``keyframes.txt`` at the newest snapshot now (a failed or interrupted run)."""
+        if self.worker is None:
+            return
+        try:
+            self._latest = self.worker.latest() or self._latest
+        except VggtSlamError:  # the worker failed: keep the last snapshot it published
+            pass
+        self._write_latest()
 
 
 def _undistorted(frame):

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from vggt_slam_pp.dem.plane import GroundPlane
 from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, sim3_log, so3_exp, transform_points
+from vggt_slam_pp.vpr.geometry import GeometryConfig, Structure, match_structure
 
 log = logging.getLogger(__name__)
 
@@ -237,45 +238,20 @@ def dem_search(src: np.ndarray, dst: np.ndarray, plane: GroundPlane, ground: flo
     maximises the normalised correlation (OpenCV ``TM_CCORR_NORMED``). Returns the 4x4 world motion and
     that score in [0, 1] (identity and 0 when either side has too little structure).
     """
-    import cv2
-
     cs, cd = plane.to_canonical(src), plane.to_canonical(dst)
     us, ud = cs[cs[:, 2] > ground + height, :2], cd[cd[:, 2] > ground + height, :2]
-    if len(us) < 10 or len(ud) < 10:
+    # the same correlation as place recognition's re-ranking, on points (weight 1 each) in world units
+    search = GeometryConfig(cell_tiles=cell, max_yaw_deg=max_yaw_deg, yaw_step_deg=yaw_step_deg,
+                            max_shift_tiles=max_shift, min_cells=10)
+    g = match_structure(Structure(us, np.ones(len(us))), Structure(ud, np.ones(len(ud))), 1.0, search)
+    if g.score <= 0:
         return np.eye(4), 0.0
-    centre = us.mean(0)
-    k = int(np.ceil(max_shift / cell))
-
-    def image(uv: np.ndarray, lo: np.ndarray, shape) -> np.ndarray:
-        ij = np.floor((uv - lo) / cell).astype(int)
-        keep = np.all((ij >= 0) & (ij < np.array(shape)), axis=1)
-        img = np.zeros(shape, np.float32)
-        np.add.at(img, (ij[keep, 0], ij[keep, 1]), 1.0)
-        return cv2.GaussianBlur(np.minimum(img, 3.0), (0, 0), 1.0)
-
-    best = (-1.0, 0.0, np.zeros(2))
-    for yaw in np.radians(np.arange(-max_yaw_deg, max_yaw_deg + 1e-9, yaw_step_deg)):
-        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
-        rs = (us - centre) @ R.T + centre
-        lo = rs.min(0)
-        shape = tuple(np.ceil((rs.max(0) - lo) / cell).astype(int) + 1)
-        if shape[0] * shape[1] > 1_000_000:
-            return np.eye(4), 0.0
-        template = image(rs, lo, shape)
-        target = image(ud, lo - k * cell, (shape[0] + 2 * k, shape[1] + 2 * k))
-        if not target.any():
-            continue
-        corr = cv2.matchTemplate(target, template, cv2.TM_CCORR_NORMED)
-        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
-        if corr[i, j] > best[0]:
-            best = (float(corr[i, j]), yaw, np.array([i - k, j - k]) * cell)
-    score, yaw, shift = best
-    if score <= 0:
-        return np.eye(4), 0.0
+    yaw = np.radians(g.yaw_deg)
     R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    centre = us.mean(0)
     T2 = np.eye(3)
-    T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + shift
-    return planar_to_world(plane, T2), score
+    T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + g.shift
+    return planar_to_world(plane, T2), g.score
 
 
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,

@@ -95,6 +95,8 @@ def match_structure(query: Structure, match: Structure, tile_size: float,
         rs = (query.uv - centre) @ R.T + centre
         lo = rs.min(0)
         shape = tuple(int(x) for x in np.ceil((rs.max(0) - lo) / cell) + 1)
+        if shape[0] * shape[1] > 1_000_000:  # a footprint this large is not one place
+            return none
         template = _image(rs, query.weight, lo, cell, shape)
         target = _image(match.uv, match.weight, lo - k * cell, cell, (shape[0] + 2 * k, shape[1] + 2 * k))
         if not target.any():

@@ -226,12 +226,15 @@ def test_worker_error_reraises_in_the_caller(tmp_path, rng):
         snap.poses[1] = np.eye(4)
 
 
-def test_worker_rejects_an_unknown_mode(tmp_path):
+def test_worker_rejects_an_unknown_mode_and_a_bad_duty(tmp_path):
     from vggt_slam_pp.backend.backend import BackendConfig
     from vggt_slam_pp.backend.worker import BackendWorker
 
     with pytest.raises(BackendError, match="unknown back-end mode 'threads'"):
         BackendWorker(BackendConfig(worker="threads"), tmp_path)
+    for duty in (0.0, 1.5):
+        with pytest.raises(BackendError, match="worker_duty must be in"):
+            BackendWorker(BackendConfig(worker_duty=duty), tmp_path)
 
 
 @pytest.mark.timeout(900)

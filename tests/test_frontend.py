@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vggt_slam_pp.errors import FrontendError
+from vggt_slam_pp.errors import FrontendError, InputError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.backbones.replay import (
     PredictionStore,
@@ -232,6 +232,38 @@ def test_nan_and_empty_predictions_degrade_and_still_write_outputs(tmp_path, loo
     assert report["edges"][0]["degraded"] and report["edges"][1]["degraded"]
     assert "non-finite poses" in caplog.text and "degraded" in caplog.text
     assert (tmp_path / "broken" / "keyframes_odometry.txt").is_file()
+
+
+class _BlasProbe(Backbone):
+    """Records the numpy BLAS thread count each prediction runs under."""
+
+    name = "probe"
+
+    def __init__(self, inner):
+        self.inner, self.threads = inner, []
+
+    def predict(self, frames):
+        from threadpoolctl import threadpool_info
+
+        self.threads.append({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+        return self.inner.predict(frames)
+
+
+def test_frontend_runs_with_the_configured_blas_threads(tmp_path, loop_sequence):
+    from threadpoolctl import threadpool_info
+
+    idx, gt = loop_sequence.frame_ground_truth()
+    before = {i["prefix"]: i["num_threads"] for i in threadpool_info()}
+    blas_default = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+    probe = _BlasProbe(SimulatedBackbone(dict(zip(idx.tolist(), gt.poses, strict=True)), SimulatedNoise.zero()))
+    _run(loop_sequence, tmp_path / "one", backbone=probe)  # default: 1
+    assert probe.threads and all(t == {1} for t in probe.threads)
+    assert {i["prefix"]: i["num_threads"] for i in threadpool_info()} == before  # restored after the run
+    probe.threads.clear()
+    _run(loop_sequence, tmp_path / "default", backbone=probe, blas_threads=0)  # the library's own
+    assert probe.threads and all(t == blas_default for t in probe.threads)
+    with pytest.raises(InputError, match="blas_threads"):
+        _run(loop_sequence, tmp_path / "bad", blas_threads=-1)
 
 
 def test_few_and_identical_frames(tmp_path, rng):

@@ -66,6 +66,10 @@ class BackendConfig:
     worker_threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     worker_priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
+    worker_duty: float = 0.5  # share of the wall time the worker may work while the front-end is still
+    # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless its inbox is
+    # over half full; once the front-end has finished it runs without pauses. Even at idle priority a busy
+    # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
 

@@ -80,8 +80,17 @@ def _snapshot(plain: tuple) -> PoseSnapshot:
     return PoseSnapshot(version, MappingProxyType(poses), loops, last, rss)
 
 
-def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
-    """The worker process: build the back-end, then one snapshot per message until ``None``."""
+def _behind(inbox, capacity: int) -> bool:
+    """True when the inbox is over half full (the worker must not pause then)."""
+    try:
+        return inbox.qsize() > capacity // 2
+    except NotImplementedError:  # macOS has no sem_getvalue: never pause for long
+        return True
+
+
+def _serve(config: BackendConfig, folder: str, inbox, outbox, streaming_done) -> None:
+    """The worker process: build the back-end, then one snapshot per message until ``None``; while the
+    front-end streams (``streaming_done`` not set) it works ``worker_duty`` of the time."""
     parent = os.getppid()
     try:
         _lower_priority(config.worker_priority)
@@ -100,7 +109,11 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox) -> None:
                 result.peak_rss_mb = peak_rss_mb()
                 outbox.put(("result", result))
                 return
+            t0 = time.perf_counter()
             outbox.put(("snapshot", _plain(backend.add_submap(msg))))
+            duty = config.worker_duty
+            if 0 < duty < 1 and not streaming_done.is_set() and not _behind(inbox, config.queue_size):
+                streaming_done.wait((time.perf_counter() - t0) * (1.0 / duty - 1.0))
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
 
@@ -144,6 +157,8 @@ class BackendWorker:
         mode = mode or config.worker
         if mode not in MODES:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
+        if not 0 < config.worker_duty <= 1:
+            raise BackendError(f"worker_duty must be in (0, 1], got {config.worker_duty}")
         self.config, self.mode = config, mode
         self.folder = Path(folder)
         self.store = SubmapStore(self.folder, cache_size=0)  # the writer keeps nothing in memory
@@ -159,7 +174,9 @@ class BackendWorker:
         ctx = mp.get_context("spawn")
         self._inbox = ctx.Queue(maxsize=max(1, config.queue_size))
         self._outbox = ctx.Queue()
-        self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox),
+        self._streaming_done = ctx.Event()
+        self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox,
+                                                      self._streaming_done),
                                  name="vggt-slam-pp-backend", daemon=True)
         _start_without_main(self._proc, config.worker_threads)
         self._backend = None
@@ -194,6 +211,7 @@ class BackendWorker:
             self._result = self._backend.finish()
             self._result.peak_rss_mb = peak_rss_mb()
             return self._result
+        self._streaming_done.set()  # no more pauses: catch up at full speed
         self._inbox.put(None)
         self._await(lambda kind: kind == "result", timeout_s, "finish")
         self._proc.join(timeout=30)

@@ -235,6 +235,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.suite == "loops":
         result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
                                         workdir=str(args.workdir or "runs/bench_loops"),
+                                        fps_repeats=args.fps_repeats,
                                         progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
         summary = _loops_table(result)
     elif args.suite == "memory":
@@ -363,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],
                    help="loops: also drive a camera along this trajectory file (TUM, KITTI or EuRoC); repeatable")
+    b.add_argument("--fps-repeats", type=int, default=3,
+                   help="loops: runs with and without the back-end per scenario for the fps medians")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
     b.add_argument("--workdir", type=Path, default=None,
                    help="where rendered sequences and runs are kept (default: runs/bench_<suite>)")

@@ -39,7 +39,9 @@ class Vocabulary:
             raise RetrievalError(f"need at least {k} features to build a {k}-word vocabulary, got {len(x)}")
         if len(x) > max_points:
             x = x[np.random.default_rng(seed).choice(len(x), max_points, replace=False)]
-        km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=seed, verbose=False)
+        # a young map has few features per word (the vocabulary is refreshed as it grows): FAISS would print a
+        # warning to stderr at every training below 39 per word
+        km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=seed, verbose=False, min_points_per_centroid=1)
         km.train(x)
         return cls(km.centroids, len(x))
 

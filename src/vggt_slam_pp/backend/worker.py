@@ -84,7 +84,7 @@ def _behind(inbox, capacity: int) -> bool:
     """True when the inbox is over half full (the worker must not pause then)."""
     try:
         return inbox.qsize() > capacity // 2
-    except NotImplementedError:  # macOS has no sem_getvalue: never pause for long
+    except NotImplementedError:  # macOS has no sem_getvalue: do not pause
         return True
 
 

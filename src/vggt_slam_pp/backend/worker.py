@@ -81,10 +81,12 @@ def _snapshot(plain: tuple) -> PoseSnapshot:
 
 
 def _behind(inbox, capacity: int) -> bool:
-    """True when the inbox is over half full (the worker must not pause then)."""
+    """True when the inbox is over half full (the worker must not pause then). Where the queue cannot be
+    measured (macOS lacks ``sem_getvalue``) it answers True, so ``worker_duty`` has no effect there: the
+    worker never pauses, as before the duty existed."""
     try:
         return inbox.qsize() > capacity // 2
-    except NotImplementedError:  # macOS has no sem_getvalue: do not pause
+    except NotImplementedError:
         return True
 
 

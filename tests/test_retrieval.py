@@ -265,3 +265,44 @@ def test_structure_match_recovers_yaw_and_shift_and_reranks(rng):
                                2.0)
     assert [r.match for r in ranked] == [1, 2] and ranked[0].score == 0.5 and ranked[0].geometry == g.score
     assert match_structure(_structure_of(place[:5]), m, 2.0).score == 0.0  # too little structure
+
+
+def _region(rng, x0: float, n_boxes: int = 6) -> np.ndarray:
+    """World points [N,3] of a 16 m x 16 m patch of ground starting at x = ``x0``, with random boxes."""
+    g = rng.uniform([x0, 0.0], [x0 + 16.0, 16.0], (6000, 2))
+    z = np.zeros(len(g))
+    for _ in range(n_boxes):
+        lo = rng.uniform([x0, 0.0], [x0 + 13.0, 13.0])
+        size, h = rng.uniform(1.0, 3.0, 2), rng.uniform(0.8, 3.0)
+        inside = np.all((g >= lo) & (g <= lo + size), axis=1)
+        z[inside] = h
+    return np.c_[g, z]
+
+
+def test_sequence_prior_adds_the_previous_match_and_its_neighbours(rng):
+    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
+
+    regions = [_region(rng, 16.0 * k) for k in range(8)]
+    cams = lambda p: p.mean(0, keepdims=True) + [0.0, 0.0, 5.0]  # noqa: E731
+    cfg = lambda n: CovisibilityConfig(index=IndexConfig(top_k=2), sequence_neighbours=n)  # noqa: E731
+    stages = {n: CovisibilityStage(HogEncoder(), cfg(n)) for n in (1, -1)}  # 2 voted edges at most
+    for stage in stages.values():
+        for k, pts in enumerate(regions[:7]):
+            stage.process(k, pts, cams(pts))
+    stage = stages[1]
+    stage.confirm(6, [2])  # the back-end verified 6 -> 2
+    out = stage.process(7, regions[7], cams(regions[7]))
+    by_match = {e.match: e for e in out.edges}
+    assert {1, 2, 3} <= set(by_match) and len(out.edges) <= 2 + 3
+    prior = [e for e in out.edges if e.source == "sequence"]
+    assert prior and all(e.match in (1, 2, 3) and e.score == 0.0 and e.votes == 0 for e in prior)
+    assert all(e.source == "votes" for e in out.edges[: len(out.edges) - len(prior)])  # votes first
+    off = stages[-1].process(7, regions[7], cams(regions[7]))
+    assert all(e.source == "votes" for e in off.edges)
+    assert {e.match for e in off.edges} == {e.match for e in out.edges if e.source == "votes"}
+    # anchored at 5, its neighbour 6 is one of query 8's excluded recent submaps and stays out
+    stage.confirm(7, [5])
+    stage.confirm(6, [0])  # not the last query: ignored
+    nxt = stage.process(8, regions[0], cams(regions[0]))
+    assert {e.match for e in nxt.edges if e.source == "sequence"} <= {4, 5} <= {e.match for e in nxt.edges}
+    assert all(e.match < 8 - stage.config.index.exclude_recent for e in nxt.edges)

@@ -170,8 +170,8 @@ class Backend:
             pw = transform_points(T, _subsample(points, self.config.dem_max_points))
             res = self.stage.process(sid, pw, transform_points(T, msg.camera_centers))
             self._layer_pose[sid] = T
-            self.covisibility += [{"query": c.query, "match": c.match, "score": c.score, "votes": c.votes}
-                                  for c in res.edges]
+            self.covisibility += [{"query": c.query, "match": c.match, "score": c.score, "votes": c.votes,
+                                   "source": c.source} for c in res.edges]
             self.timings["covisibility_s"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             accepted = self._verify(sid, res, transform_points(T, _subsample(points,
@@ -250,6 +250,7 @@ class Backend:
                 info = r.information if self.config.loop_information == "icp" else None
                 self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict(), info))
                 accepted.append(r)
+        self.stage.confirm(sid, [r.match for r in accepted])
         return accepted
 
     def _window(self, sid: int, matches: list[int]) -> set[int]:

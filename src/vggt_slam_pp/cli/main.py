@@ -249,9 +249,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         summary = "\n".join(
             f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
             f"{name}: {r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
-            f"{r['covisibility_recall']}, VPR top-1 precision {r['vpr_top1_precision']}"
+            f"{r['covisibility_recall']} (voting alone {r['covisibility_recall_votes']}), VPR top-1 precision "
+            f"{r['vpr_top1_precision']}"
             for name, r in result["scenes"].items())
-        summary += (f"\nmean: covisibility recall {result['covisibility_recall']} (target >= 0.9), "
+        summary += (f"\nmean: covisibility recall {result['covisibility_recall']} (target >= 0.9; voting alone "
+                    f"{result['covisibility_recall_votes']}), "
                     f"VPR top-1 precision {result['vpr_top1_precision']} (target >= 0.8)")
     if args.json:
         _print_json(result)

@@ -5,7 +5,11 @@
 1. rasterise the submap's points (world frame) into its DEM layer (the ground plane and grid are
    fixed by the first submap);
 2. encode the layer's encoder image once (dense patch features) and compute the gradient weights;
-3. chips (window = whole layer) vote in the HNSW gallery -> covisibility edges;
+3. chips (window = whole layer) vote in the HNSW gallery -> covisibility edges; the previous query's
+   match (its verified loop when the back-end reported one through :meth:`CovisibilityStage.confirm`,
+   else its top candidate) and its ``sequence_neighbours`` temporal neighbours on either side join them
+   (source "sequence"): a camera that revisits a place keeps revisiting the places along it, so the
+   submap that follows a revisit query overlaps the ones next to that query's match;
 4. VLAD of the chips against the tiles of the covisible submaps, then every covisible submap re-ranked
    by DEM structure correlation over yaw and shift (:mod:`vggt_slam_pp.vpr.geometry`) -> loop candidates;
 5. insert the layer's tiles (descriptors and VLADs) into the gallery; refresh the VLAD vocabulary as
@@ -46,6 +50,7 @@ class CovisibilityConfig:
     vlad_cache_submaps: int = 16  # tile VLADs cached for this many submaps (oldest first out)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     rerank: bool = True  # candidates = the covisible submaps ranked by structure correlation (VLAD breaks ties)
+    sequence_neighbours: int = 1  # the previous query's match +- this many submaps join the covisible set; -1: off
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +90,7 @@ class CovisibilityStage:
         self._tile_cells: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # features, usable tiles, cells/tile
         self._structure: dict[int, Structure] = {}
         self._vlad_seen = 0
+        self._previous: tuple[int, list[int]] | None = None  # (query, its matches) for the sequence prior
 
     def _ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
                      median_depth: float | None) -> None:
@@ -128,6 +134,7 @@ class CovisibilityStage:
             self.index = TileIndex(d.tiles.shape[2], c.index, self.encoder.name)
         t0 = time.perf_counter()
         edges = self.index.vote(submap_id, d.chips[d.chip_ok])
+        edges += self._sequence_edges(submap_id, {e.match for e in edges})
         t["vote_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         candidates: list[LoopCandidate] = []
@@ -153,7 +160,25 @@ class CovisibilityStage:
         if self.vocab is not None and self.vocab.needs_refresh(self._vlad_seen):
             self._train_vocabulary()
         t["index_s"] = time.perf_counter() - t0
+        self._previous = (submap_id, [candidates[0].match] if candidates else [])
         return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok])
+
+    def confirm(self, query: int, matches: list[int]) -> None:
+        """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the
+        next query's sequence prior. Ignored unless ``query`` is the last processed submap."""
+        if self._previous is not None and self._previous[0] == query and matches:
+            self._previous = (query, [int(m) for m in matches])
+
+    def _sequence_edges(self, submap_id: int, voted: set[int]) -> list[CovisibilityEdge]:
+        """Edges to the previous query's matches and their +-``sequence_neighbours`` neighbours that are
+        in the gallery, older than the excluded recent submaps and not voted already (score 0)."""
+        n = self.config.sequence_neighbours
+        if n < 0 or self._previous is None:
+            return []
+        newest = submap_id - self.config.index.exclude_recent
+        near = sorted({m + k for m in self._previous[1] for k in range(-n, n + 1)})
+        return [CovisibilityEdge(submap_id, m, 0.0, 0, "sequence") for m in near
+                if m < newest and m in self._structure and m not in voted]
 
     def relocate(self, submap_id: int, points_world: np.ndarray) -> DemLayer:
         """Re-rasterise and re-index a submap whose pose the back-end changed."""

@@ -144,3 +144,22 @@ def test_run_command_simulated_and_bad_input(tmp_path, capsys):
                           "--out", tmp_path / "x", "-q"), "missing")
     _one_line_error(*_run(capsys, "run", "--input", seq, "--backbone", "replay", "--out", tmp_path / "y", "-q"),
                     "--replay")
+
+
+def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
+    from vggt_slam_pp import benchmarks
+
+    seen = {}
+
+    def fake(name, result):
+        def bench(**kw):
+            seen[name] = kw
+            return result
+        return bench
+
+    cov = {"scenes": {}, "covisibility_recall": None, "covisibility_recall_votes": None, "vpr_top1_precision": None}
+    monkeypatch.setattr(benchmarks, "bench_covisibility", fake("covisibility", cov))
+    monkeypatch.setattr(benchmarks, "bench_loops", fake("loops", {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0}))
+    code, out, _ = _run(capsys, "bench", "covisibility", "--seed", 3, "--json")
+    assert code == 0 and seen["covisibility"]["seed"] == 3 and json.loads(out)["scenes"] == {}
+    assert _run(capsys, "bench", "loops", "--json")[0] == 0 and seen["loops"]["seed"] == 0

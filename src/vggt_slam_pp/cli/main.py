@@ -235,17 +235,18 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.suite == "loops":
         result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
                                         workdir=str(args.workdir or "runs/bench_loops"),
-                                        fps_repeats=args.fps_repeats,
+                                        fps_repeats=args.fps_repeats, seed=args.seed,
                                         progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
         summary = _loops_table(result)
     elif args.suite == "memory":
-        result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"))
+        result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
+                                         seed=args.seed)
         summary = (f"{result['submaps']} submaps ({result['frames']} frames): RSS (front-end + back-end) "
                    f"{result['rss_mb_at_50']:.0f} MiB at 50 submaps, {result['rss_mb_at_300']:.0f} MiB at 300: "
                    f"growth {100 * result['growth']:.1f} % (target < 20 %)")
     else:
-        result = benchmarks.bench_covisibility(frames=args.frames, workdir=str(args.workdir or
-                                                                               "runs/bench_covisibility"))
+        result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed,
+                                               workdir=str(args.workdir or "runs/bench_covisibility"))
         summary = "\n".join(
             f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
             f"{name}: {r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
@@ -369,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--fps-repeats", type=int, default=3,
                    help="loops: runs with and without the back-end per scenario for the fps medians")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
+    b.add_argument("--seed", type=int, default=0,
+                   help="covisibility, loops, memory: world and noise seed (another seed: other solids along the same "
+                        "trajectories; the figures in docs/ are for seed 0 unless they say otherwise)")
     b.add_argument("--workdir", type=Path, default=None,
                    help="where rendered sequences and runs are kept (default: runs/bench_<suite>)")
     b.add_argument("--json", action="store_true")

@@ -251,6 +251,19 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
     source = open_source(tmp_path / "seq")
     base = run(source, _synthetic_run_config(0, worker="inline"), tmp_path / "base")
     assert base["loops_accepted"] >= 2 and base["ate_rmse"] < 0.9 * base["ate_rmse_odometry"]
+    # the sequence prior follows the loops the back-end verified (Backend -> CovisibilityStage.confirm)
+    graph = json.loads((tmp_path / "base" / "graph.json").read_text())
+    verified: dict[int, set[int]] = {}
+    for c in graph["loop_candidates"]:
+        if c["accepted"]:
+            verified.setdefault(c["query"], set()).add(c["match"])
+    followed = 0
+    for e in graph["covisibility"]:
+        assert e["source"] in ("votes", "sequence")
+        if e["source"] == "sequence" and e["query"] - 1 in verified:
+            assert min(abs(e["match"] - m) for m in verified[e["query"] - 1]) <= 1
+            followed += 1
+    assert followed >= 1
     for rate in (0.1, 0.3):
         faulty = run(source, _synthetic_run_config(0, worker="inline", inject_wrong_candidates=rate),
                      tmp_path / f"faulty{rate}")

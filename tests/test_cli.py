@@ -159,7 +159,8 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
 
     cov = {"scenes": {}, "covisibility_recall": None, "covisibility_recall_votes": None, "vpr_top1_precision": None}
     monkeypatch.setattr(benchmarks, "bench_covisibility", fake("covisibility", cov))
-    monkeypatch.setattr(benchmarks, "bench_loops", fake("loops", {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0}))
+    loops = {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0}
+    monkeypatch.setattr(benchmarks, "bench_loops", fake("loops", loops))
     code, out, _ = _run(capsys, "bench", "covisibility", "--seed", 3, "--json")
     assert code == 0 and seen["covisibility"]["seed"] == 3 and json.loads(out)["scenes"] == {}
     assert _run(capsys, "bench", "loops", "--json")[0] == 0 and seen["loops"]["seed"] == 0

@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class GraphConfig:
     robust_kernel: str = "cauchy"  # "cauchy", "huber" or "none" (loop factors)
-    kernel_width: float = 1.0  # in whitened units (sigmas)
+    kernel_width: float = 0.5  # in whitened units: our sigmas are ~5x the actual spread (whitened residuals
+    # ~0.2-0.5), so 0.5 is about the typical residual; 1.0 left wrong loops almost unweighted (docs/backend.md)
     continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
     odometry_scale_sigma: float = 0.01  # log-scale

@@ -245,7 +245,6 @@ class _BackendFeeder:
             self.memory_trace.append((self.sent, rss_mb()))
         self.seconds += time.perf_counter() - t
 
-
     def _write_latest(self) -> None:
         snap = self._latest
         if snap is not None and (snap.version, snap.last_submap) != self._written:

@@ -73,11 +73,13 @@ def encoder_image(heights: np.ndarray, alpha_edge: float = 0.95,
     return img.astype(np.float32)
 
 
+_RAMP_LOW, _RAMP_HIGH = np.array([240, 220, 90], float), np.array([20, 90, 30], float)  # RGB: ground, high
+
+
 def height_ramp(t: np.ndarray) -> np.ndarray:
     """Normalised heights [...] in [0,1] -> RGB [..., 3] float: yellow (ground) to dark green (high)."""
-    low, high = np.array([240, 220, 90], float), np.array([20, 90, 30], float)
     t = np.asarray(t, float)[..., None]
-    return (1 - t) * low + t * high
+    return (1 - t) * _RAMP_LOW + t * _RAMP_HIGH
 
 
 def hillshade_rgb(heights: np.ndarray, azimuth_deg: float = 315.0, altitude_deg: float = 45.0,
@@ -96,10 +98,9 @@ def hillshade_rgb(heights: np.ndarray, azimuth_deg: float = 315.0, altitude_deg:
     del gx, gy
     shade = np.float32(0.35) + np.float32(0.65) * np.clip(shade, 0.0, 1.0)
     t = np.nan_to_num(n, nan=0.0)
-    ramp = height_ramp(np.zeros(1)), height_ramp(np.ones(1))
     rgb = np.empty((*heights.shape, 3), np.uint8)
-    for ch in range(3):
-        low, high = np.float32(ramp[0][0, ch]), np.float32(ramp[1][0, ch])
+    for ch in range(3):  # height_ramp, one channel at a time
+        low, high = np.float32(_RAMP_LOW[ch]), np.float32(_RAMP_HIGH[ch])
         rgb[..., ch] = np.clip(((1 - t) * low + t * high) * shade, 0, 255).astype(np.uint8)
         rgb[..., ch][~valid] = 255
     return rgb

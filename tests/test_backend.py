@@ -133,6 +133,31 @@ def test_register_loop_accepts_a_true_revisit_and_rejects_another_place(rng):
     assert not r3.accepted and "structure" in r3.reason  # ground alone aligns anywhere: not evidence
 
 
+def test_register_loop_refines_the_second_structure_peak_when_the_best_is_a_look_alike(rng, monkeypatch):
+    import vggt_slam_pp.backend.registration as reg
+    from vggt_slam_pp.vpr import GeometricMatch
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    world = _place(rng)
+    # drifted 7 m and 4 deg: beyond what ICP from the current estimate recovers, within the DEM search
+    drift = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(4)])), np.array([7.0, 1.0, 0.0]))
+    seen_again = transform_points(drift, world + rng.normal(0, 0.01, world.shape))
+    real = reg.structure_peaks
+
+    def look_alike_first(query, match, tile_size, config=None, count=3, min_separation_tiles=1.0):
+        # a repetitive street: a look-alike correlates (slightly) better than the true place
+        true = real(query, match, tile_size, config, count, min_separation_tiles)
+        return [GeometricMatch(true[0].score + 0.01, 0.0, np.array([11.0, -8.0])), *true][:count]
+
+    monkeypatch.setattr(reg, "structure_peaks", look_alike_first)
+    args = (9, 1, seen_again, world, plane, 2.0, drift, np.eye(4))
+    one = register_loop(*args, config=reg.RegistrationConfig(search_peaks=1))
+    two = register_loop(*args, config=reg.RegistrationConfig(search_peaks=2))
+    assert two.accepted and two.guess == "dem_search_2", two.reason
+    assert np.allclose(two.correction @ drift, np.eye(4), atol=0.05)
+    assert not (one.accepted and np.allclose(one.correction @ drift, np.eye(4), atol=0.05))
+
+
 def test_submap_store_round_trip_and_bounded_cache(tmp_path, rng):
     store = SubmapStore(tmp_path / "s", cache_size=2)
     clouds = {i: rng.normal(size=(100 + i, 3)).astype(np.float32) for i in range(5)}

@@ -267,6 +267,30 @@ def test_structure_match_recovers_yaw_and_shift_and_reranks(rng):
     assert match_structure(_structure_of(place[:5]), m, 2.0).score == 0.0  # too little structure
 
 
+def test_structure_peaks_lists_distinct_alternatives_on_a_repetitive_street(rng):
+    from vggt_slam_pp.vpr import match_structure, structure_peaks
+
+    # four identical L-shaped buildings every 8 m: the query saw two of them
+    t = np.linspace(0, 4, 40)
+    ell = np.concatenate([np.c_[t, np.zeros_like(t)], np.c_[np.zeros_like(t[:25]), t[:25] * 0.6]])
+    street = np.concatenate([ell + [8.0 * k, 0.0] for k in range(4)])
+    seen = np.concatenate([ell + [8.0 * k, 0.0] for k in (1, 2)]) + [1.0, 0.0]  # drifted 1 m along the street
+    q, m = _structure_of(seen), _structure_of(street)
+    peaks = structure_peaks(q, m, 2.0, count=3)
+    assert len(peaks) == 3 and [p.score for p in peaks] == sorted((p.score for p in peaks), reverse=True)
+    best = match_structure(q, m, 2.0)
+    assert (peaks[0].score, peaks[0].yaw_deg) == (best.score, best.yaw_deg) and np.allclose(peaks[0].shift, best.shift)
+    shifts = np.array([p.shift for p in peaks])
+    gaps = np.linalg.norm(shifts[:, None] - shifts[None], axis=2)[np.triu_indices(3, 1)]
+    assert gaps.min() >= 2.0  # alternatives, not neighbours of the best (1 tile apart at least)
+    # the true correction (-1 m) and a look-alike one building (8 m) away are both among them
+    assert np.min(np.linalg.norm(shifts - [-1.0, 0.0], axis=1)) <= 0.5
+    assert np.min(np.linalg.norm(shifts - [7.0, 0.0], axis=1)) <= 0.5 or np.min(
+        np.linalg.norm(shifts - [-9.0, 0.0], axis=1)) <= 0.5
+    few = structure_peaks(_structure_of(street[:5]), m, 2.0)  # too little structure: one empty match
+    assert len(few) == 1 and few[0].score == 0.0
+
+
 def _region(rng, x0: float, n_boxes: int = 6) -> np.ndarray:
     """World points [N,3] of a 16 m x 16 m patch of ground starting at x = ``x0``, with random boxes."""
     g = rng.uniform([x0, 0.0], [x0 + 16.0, 16.0], (6000, 2))

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from vggt_slam_pp.dem.plane import GroundPlane
 from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, sim3_log, so3_exp, transform_points
-from vggt_slam_pp.vpr.geometry import GeometryConfig, Structure, match_structure
+from vggt_slam_pp.vpr.geometry import GeometryConfig, Structure, structure_peaks
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,9 @@ class RegistrationConfig:
     search_max_yaw_deg: float = 15.0
     search_yaw_step_deg: float = 1.0
     search_max_shift_tiles: float = 5.0
+    search_peaks: int = 2  # distinct DEM-search alignments refined by ICP (the best first; a third
+    # accepted repetitive-structure look-alikes on other bench worlds)
+    alternative_min_structure_overlap: float = 0.35  # a peak after the first counts only with this much
     normals_k: int = 10
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
     floor_rot_sigma: float = 0.1  # loop information: weak prior per ICP parameter (rad, tiles, log-scale)
@@ -229,29 +232,35 @@ def loop_information(H: np.ndarray, centre: np.ndarray, C: np.ndarray, T_world_m
 
 
 def dem_search(src: np.ndarray, dst: np.ndarray, plane: GroundPlane, ground: float, height: float, cell: float,
-               max_yaw_deg: float, yaw_step_deg: float, max_shift: float) -> tuple[np.ndarray, float]:
-    """Planar motion (yaw, shift) aligning the structure of ``src`` onto ``dst``: exhaustive yaw and
+               max_yaw_deg: float, yaw_step_deg: float, max_shift: float, count: int = 1
+               ) -> list[tuple[np.ndarray, float]]:
+    """Planar motions (yaw, shift) aligning the structure of ``src`` onto ``dst``: exhaustive yaw and
     normalised cross-correlation of their structure-occupancy images in the ground plane.
 
     Points higher than ``ground + height`` are rasterised into ``cell``-sized occupancy images (blurred by
-    one cell); for each yaw about the source structure's centroid, the shift within ``max_shift`` that
-    maximises the normalised correlation (OpenCV ``TM_CCORR_NORMED``). Returns the 4x4 world motion and
-    that score in [0, 1] (identity and 0 when either side has too little structure).
+    one cell); for each yaw about the source structure's centroid, the shifts within ``max_shift`` that
+    maximise the normalised correlation (OpenCV ``TM_CCORR_NORMED``). Returns up to ``count`` distinct
+    alignments, best first: (4x4 world motion, score in [0, 1]); empty when either side has too little
+    structure. Repetitive structure (a row of similar buildings) gives several peaks of similar height,
+    and which one wins can flip with a few decimetres of drift, so the caller refines more than one.
     """
     cs, cd = plane.to_canonical(src), plane.to_canonical(dst)
     us, ud = cs[cs[:, 2] > ground + height, :2], cd[cd[:, 2] > ground + height, :2]
     # the same correlation as place recognition's re-ranking, on points (weight 1 each) in world units
     search = GeometryConfig(cell_tiles=cell, max_yaw_deg=max_yaw_deg, yaw_step_deg=yaw_step_deg,
                             max_shift_tiles=max_shift, min_cells=10)
-    g = match_structure(Structure(us, np.ones(len(us))), Structure(ud, np.ones(len(ud))), 1.0, search)
-    if g.score <= 0:
-        return np.eye(4), 0.0
-    yaw = np.radians(g.yaw_deg)
-    R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
-    centre = us.mean(0)
-    T2 = np.eye(3)
-    T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + g.shift
-    return planar_to_world(plane, T2), g.score
+    out = []
+    for g in structure_peaks(Structure(us, np.ones(len(us))), Structure(ud, np.ones(len(ud))), 1.0, search, count,
+                             min_separation_tiles=5 * cell):
+        if g.score <= 0:
+            continue
+        yaw = np.radians(g.yaw_deg)
+        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        centre = us.mean(0)
+        T2 = np.eye(3)
+        T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + g.shift
+        out.append((planar_to_world(plane, T2), g.score))
+    return out
 
 
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
@@ -300,10 +309,11 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     ground = float(np.median(h_dst))
     struct_dst = dst[h_dst > ground + c.structure_height_tiles * unit]
     struct_tree = cKDTree(struct_dst) if len(struct_dst) >= c.min_structure_points else None
-    G, search_score = dem_search(src, dst, plane, ground, c.structure_height_tiles * unit, c.search_cell_tiles * unit,
-                                 c.search_max_yaw_deg, c.search_yaw_step_deg, c.search_max_shift_tiles * unit)
-    if search_score > 0:
-        guesses["dem_search"] = G
+    peaks = dem_search(src, dst, plane, ground, c.structure_height_tiles * unit, c.search_cell_tiles * unit,
+                       c.search_max_yaw_deg, c.search_yaw_step_deg, c.search_max_shift_tiles * unit, c.search_peaks)
+    for k, (G, _) in enumerate(peaks):
+        guesses["dem_search" if k == 0 else f"dem_search_{k + 1}"] = G
+    alternatives = {f"dem_search_{k + 1}" for k in range(1, len(peaks))}
     # a guess is worth refining only if enough of the query lies within the ICP's first radius
     guesses = {k: G for k, G in guesses.items()
                if np.isfinite(tree.query(transform_points(G, src), distance_upper_bound=c.icp_radius_tiles * unit)[0]
@@ -330,9 +340,14 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             s_overlap = float(np.isfinite(ds).mean())
         else:
             s_overlap = 0.0
+        if name in alternatives and s_overlap < c.alternative_min_structure_overlap:
+            continue  # a weaker correlation peak has to show more structure than the primary guesses
         cand = (s_overlap, overlap, residual, T, name, H, centre)
         if best is None or (cand[0], cand[1]) > (best[0], best[1]):
             best = cand
+    if best is None:
+        return reject(f"structure overlap < {c.alternative_min_structure_overlap} at every DEM-search peak",
+                      planar_inliers=n_planar)
     s_overlap, overlap, residual, C, name, H, centre = best
     ev = np.linalg.eigvalsh(plane.R[:2] @ H[3:6, 3:6] @ plane.R[:2].T)  # in-plane translation information
     constraint = float(ev[0] / max(ev[1], 1e-12))

@@ -81,14 +81,26 @@ def _image(uv: np.ndarray, w: np.ndarray, lo: np.ndarray, cell: float, shape: tu
 def match_structure(query: Structure, match: Structure, tile_size: float,
                     config: GeometryConfig | None = None) -> GeometricMatch:
     """Best normalised correlation of ``query``'s structure (rotated, shifted) over ``match``'s."""
+    return structure_peaks(query, match, tile_size, config, count=1)[0]
+
+
+def structure_peaks(query: Structure, match: Structure, tile_size: float, config: GeometryConfig | None = None,
+                    count: int = 3, min_separation_tiles: float = 1.0) -> list[GeometricMatch]:
+    """The ``count`` best distinct alignments of ``query``'s structure over ``match``'s, best first.
+
+    Each yaw contributes the local maxima of its correlation image; alignments closer than
+    ``min_separation_tiles`` in shift (at any yaw) to a better one are dropped, so the list holds
+    alternatives, not neighbours of the best. Always at least one entry (score 0 when either side has
+    too little structure).
+    """
     c = config or GeometryConfig()
     none = GeometricMatch(0.0, 0.0, np.zeros(2))
     if len(query) < c.min_cells or len(match) < c.min_cells:
-        return none
+        return [none]
     cell = c.cell_tiles * tile_size
     k = int(np.ceil(c.max_shift_tiles / c.cell_tiles))
     centre = np.average(query.uv, axis=0, weights=query.weight)
-    best = none
+    found: list[GeometricMatch] = []
     for yaw in np.arange(-c.max_yaw_deg, c.max_yaw_deg + 1e-9, c.yaw_step_deg):
         a = np.radians(yaw)
         R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
@@ -96,16 +108,29 @@ def match_structure(query: Structure, match: Structure, tile_size: float,
         lo = rs.min(0)
         shape = tuple(int(x) for x in np.ceil((rs.max(0) - lo) / cell) + 1)
         if shape[0] * shape[1] > 1_000_000:  # a footprint this large is not one place
-            return none
+            return [none]
         template = _image(rs, query.weight, lo, cell, shape)
         target = _image(match.uv, match.weight, lo - k * cell, cell, (shape[0] + 2 * k, shape[1] + 2 * k))
         if not target.any():
             continue
         corr = cv2.matchTemplate(target, template, cv2.TM_CCORR_NORMED)
-        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
-        if corr[i, j] > best.score:
-            best = GeometricMatch(float(corr[i, j]), float(yaw), np.array([i - k, j - k], float) * cell)
-    return best
+        if count == 1:
+            peaks = [np.unravel_index(int(np.argmax(corr)), corr.shape)]
+        else:  # local maxima (3x3), best first
+            is_max = (corr >= cv2.dilate(corr, np.ones((3, 3), np.uint8))) & (corr > 0)
+            ii, jj = np.nonzero(is_max)
+            order = np.argsort(-corr[ii, jj])[: 4 * count]
+            peaks = list(zip(ii[order], jj[order], strict=True))
+        found += [GeometricMatch(float(corr[i, j]), float(yaw), np.array([i - k, j - k], float) * cell)
+                  for i, j in peaks]
+    found.sort(key=lambda g: -g.score)
+    out: list[GeometricMatch] = []
+    for g in found:
+        if all(np.linalg.norm(g.shift - o.shift) >= min_separation_tiles * tile_size for o in out):
+            out.append(g)
+            if len(out) == count:
+                break
+    return out or [none]
 
 
 def rerank_candidates(query_submap: int, query: Structure, gallery: dict[int, Structure],

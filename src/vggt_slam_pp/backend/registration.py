@@ -5,7 +5,10 @@ For a loop candidate (query submap i, match j), all in the current world estimat
 1. **Planar guess.** Mutual nearest neighbours between i's chip descriptors and j's tile descriptors
    give 2-D correspondences between tile centres in the DEM plane; RANSAC over 2-point rigid
    hypotheses (yaw + translation, inlier radius ``ransac_radius_tiles``) gives a planar motion. The
-   identity (the odometry's own guess) is always tried as well.
+   identity (the odometry's own guess) is always tried as well, and so are the best ``search_peaks``
+   distinct alignments of a DEM structure search (:func:`dem_search`; a peak after the first only counts
+   with ``alternative_min_structure_overlap``: on repetitive streets the best correlation is often a
+   look-alike one building away).
 2. **3-D refinement.** ICP with scale (Umeyama on nearest neighbours, the rejection radius shrinking
    from ``icp_radius_tiles`` to ``inlier_radius_tiles``) of i's points onto j's, from each guess.
 3. **Verification.** With the best refinement: ``overlap`` (share of i's points with a neighbour in j

@@ -122,7 +122,7 @@ def structure_peaks(query: Structure, match: Structure, tile_size: float, config
             order = np.argsort(-corr[ii, jj])[: 4 * count]
             peaks = list(zip(ii[order], jj[order], strict=True))
         found += [GeometricMatch(float(corr[i, j]), float(yaw), np.array([i - k, j - k], float) * cell)
-                  for i, j in peaks]
+                  for i, j in peaks if corr[i, j] > 0]
     found.sort(key=lambda g: -g.score)
     out: list[GeometricMatch] = []
     for g in found:

@@ -257,3 +257,63 @@ def test_synthetic_camera_json_is_read(tmp_path):
     src = open_source(tmp_path)
     assert src.camera.fx == 20 and not src.camera.distorted
     np.testing.assert_allclose(src[0].depth, 5.0)  # raw 5000 / 1000
+
+
+def _make_kitti_root(root: Path, rng, seqs=("00", "05", "07"), gt_for=("00", "05"), n: int = 2) -> dict:
+    """A tiny KITTI odometry root: ``root/sequences/NN/image_0/*.png`` + ``times.txt``, and
+    ``root/poses/NN.txt`` (12-column camera-to-world of cam0) for the sequences in ``gt_for``."""
+    gts = {}
+    for k, name in enumerate(seqs):
+        seq = root / "sequences" / name
+        for i in range(n):
+            _write(seq / "image_0" / f"{i:06d}.png", _img(10 * k + i, gray=True))
+        (seq / "times.txt").write_text("".join(f"{0.1 * i + 0.05:.6e}\n" for i in range(n)))
+        if name in gt_for:
+            (root / "poses").mkdir(parents=True, exist_ok=True)
+            gts[name] = random_trajectory(rng, n)
+            write_trajectory(root / "poses" / f"{name}.txt", gts[name], "kitti")
+    return gts
+
+
+def test_kitti_root_is_refused_with_its_sequences(tmp_path, rng):
+    root = tmp_path / "dataset"
+    _make_kitti_root(root, rng)
+    for path in (root, root / "sequences"):
+        for call in (lambda: open_source(path), lambda: detect_layout(path),
+                     lambda: open_source(path, layout="kitti")):
+            with pytest.raises(InputError) as info:
+                call()
+            msg = str(info.value)
+            assert "\n" not in msg
+            assert "KITTI odometry root with 3 sequences (00, 05, 07; ground truth for 00, 05)" in msg
+            assert str(root / "sequences" / "00") in msg and msg.startswith(str(path))
+            assert "no images" not in msg
+
+
+def test_kitti_root_message_shortens_runs_and_notes_missing_images(tmp_path, rng):
+    root = tmp_path / "dataset"
+    _make_kitti_root(root, rng, seqs=("00", "01", "02", "03", "09", "10"), gt_for=(), n=1)
+    with pytest.raises(InputError, match=r"6 sequences \(00-03, 09, 10; no ground truth\)"):
+        open_source(root)
+    bare = tmp_path / "calib_only" / "sequences"
+    for name in ("00", "01"):
+        (bare / name).mkdir(parents=True)
+        (bare / name / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match=r"2 sequence\(s\) \(00, 01\) but none has image_2/ or image_0/"):
+        open_source(bare.parent)
+
+
+def test_kitti_sequence_of_a_root_opens_with_its_ground_truth(tmp_path, rng):
+    root = tmp_path / "dataset"
+    gts = _make_kitti_root(root, rng)
+    src = open_source(root / "sequences" / "05")
+    assert src.layout == "kitti" and len(src) == 2
+    assert src[1].image.shape == (H, W, 3)
+    np.testing.assert_allclose(src.timestamps, [0.05, 0.15])
+    g = src.ground_truth()
+    np.testing.assert_allclose(g.poses, gts["05"].poses, atol=1e-6)  # image_0 is cam0: no offset
+    np.testing.assert_allclose(g.timestamps, [0.05, 0.15])
+    assert open_source(root / "sequences" / "07").ground_truth() is None
+    (root / "sequences" / "07" / "times.txt").write_text("0.0\nabc\n")
+    with pytest.raises(InputError, match="malformed time"):
+        open_source(root / "sequences" / "07")

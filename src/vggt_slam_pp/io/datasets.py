@@ -9,6 +9,8 @@ Layouts (``detect_layout`` checks them in this order):
               (our synthetic sequences) or the published freiburg1/2/3 values when the name says which.
 ``kitti``     KITTI odometry sequence folder: ``image_2/`` (or ``image_0/``), ``times.txt``, ``calib.txt``;
               ground truth ``poses/<seq>.txt`` two levels up (or ``poses.txt`` beside the images).
+              A KITTI odometry *root* (``dataset/`` holding ``sequences/NN/``, or ``sequences/`` itself)
+              is not a sequence: it is refused with an error that lists its sequences.
 ``7scenes``   Microsoft 7-Scenes sequence: ``frame-XXXXXX.color.png``, ``.depth.png`` (mm), ``.pose.txt``.
 ``vkitti2``   Virtual KITTI 2 scene variation: ``frames/rgb/Camera_0/rgb_XXXXX.jpg``,
               ``frames/depth/Camera_0/depth_XXXXX.png`` (cm), ``intrinsic.txt``, ``extrinsic.txt``.
@@ -168,22 +170,103 @@ def _kitti_calib(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+_KITTI_IMAGE_DIRS = ("image_2", "image_0")
+_KITTI_SEQUENCE_MARKERS = ("times.txt", "calib.txt", "velodyne")
+
+
+def _is_kitti_sequence(folder: Path) -> bool:
+    """Whether ``folder`` looks like a KITTI odometry sequence: it has ``image_2/`` or ``image_0/``."""
+    return any((folder / d).is_dir() for d in _KITTI_IMAGE_DIRS)
+
+
+def _name_ranges(names: list[str]) -> str:
+    """``00, 01, 02, 05`` -> ``00-02, 05``: runs of three or more consecutive numbers of equal width
+    are shortened; other names are listed as they are."""
+    parts: list[str] = []
+    i = 0
+    while i < len(names):
+        j = i
+        if names[i].isdigit():
+            while (j + 1 < len(names) and names[j + 1].isdigit() and len(names[j + 1]) == len(names[i])
+                   and int(names[j + 1]) == int(names[j]) + 1):
+                j += 1
+        parts.append(f"{names[i]}-{names[j]}" if j - i >= 2 else ", ".join(names[i : j + 1]))
+        i = j + 1
+    return ", ".join(parts)
+
+
+def _kitti_root_error(path: Path) -> InputError | None:
+    """The error for a KITTI odometry root given where one sequence is expected, or None.
+
+    ``path`` is a root when it holds ``sequences/NN/`` or when it is such a ``sequences`` folder itself:
+    a folder whose sub-folders are KITTI sequences (``image_2/`` or ``image_0/``, see
+    :func:`_is_kitti_sequence`). Ground truth is ``poses/NN.txt`` beside ``sequences``. A root whose
+    sequence folders hold only ``times.txt``, ``calib.txt`` or ``velodyne/`` (the images were not
+    downloaded) gets an error saying so.
+    """
+    if not path.is_dir() or _is_kitti_sequence(path):
+        return None
+    seq_dir = path / "sequences" if (path / "sequences").is_dir() else path
+    try:
+        subdirs = natsorted((d for d in seq_dir.iterdir() if d.is_dir() and not d.name.startswith(".")),
+                            key=lambda d: d.name)
+    except OSError:
+        return None
+    with_images = [d for d in subdirs if _is_kitti_sequence(d)]
+    without_images = [d for d in subdirs if d not in with_images
+                      and any((d / m).exists() for m in _KITTI_SEQUENCE_MARKERS)]
+    if not with_images and not (without_images and (seq_dir.name == "sequences" or seq_dir != path)):
+        return None
+    poses_dir = seq_dir.parent / "poses"
+    if not with_images:
+        names = [d.name for d in without_images]
+        log.debug("%s: KITTI sequences without images: %s", path, names)
+        return InputError(
+            f"{path} is a KITTI odometry root with {len(names)} sequence(s) ({_name_ranges(names)}) "
+            "but none has image_2/ or image_0/: download the colour or grayscale images of the odometry "
+            "benchmark")
+    names = [d.name for d in with_images]
+    gt_names = [n for n in names if (poses_dir / f"{n}.txt").is_file()]
+    gt = f"; ground truth for {_name_ranges(gt_names)}" if gt_names else "; no ground truth"
+    log.debug("%s: KITTI root, sequences %s, ground truth %s", path, names, gt_names)
+    return InputError(
+        f"{path} is a KITTI odometry root with {len(names)} sequence{'s' if len(names) != 1 else ''} "
+        f"({_name_ranges(names)}{gt}): pass one sequence folder instead, e.g. {with_images[0]}")
+
+
+def _kitti_times(path: Path, n_images: int) -> np.ndarray:
+    """Seconds per frame from a KITTI ``times.txt`` (one number a line, scientific notation allowed)."""
+    try:
+        ts = np.array([float(x) for x in path.read_text().split()])
+    except ValueError as exc:
+        raise InputError(f"{path}: malformed time ({exc})") from None
+    if len(ts) != n_images:
+        raise InputError(f"{path} has {len(ts)} times for {n_images} images")
+    return ts
+
+
 def open_kitti(root: Path) -> ImageSequence:
     """KITTI odometry sequence folder (``sequences/XX``). Ground truth is for the chosen camera:
-    the cam0 poses of ``poses/XX.txt`` moved by the camera's baseline from ``calib.txt``."""
-    cam_name = "image_2" if (root / "image_2").is_dir() else "image_0"
-    img_dir = root / cam_name
-    if not img_dir.is_dir():
+    the cam0 poses of ``poses/XX.txt`` (12 columns, camera-to-world of the left grayscale camera),
+    timed by ``times.txt``, moved by the camera's baseline from ``calib.txt``.
+
+    A KITTI odometry root (``dataset/`` or ``dataset/sequences``) raises :class:`InputError` naming
+    its sequences."""
+    cam_name = next((d for d in _KITTI_IMAGE_DIRS if (root / d).is_dir()), None)
+    if cam_name is None:
+        root_error = _kitti_root_error(root)
+        if root_error is not None:
+            raise root_error
         raise InputError(f"not a KITTI sequence folder (no image_2/ or image_0/): {root}")
+    img_dir = root / cam_name
     paths = list_images(img_dir)
     if not paths:
         raise InputError(f"no images in {img_dir}")
     times = root / "times.txt"
     if times.is_file():
-        ts = np.array([float(x) for x in times.read_text().split()])
-        if len(ts) != len(paths):
-            raise InputError(f"{times} has {len(ts)} times for {len(paths)} images")
+        ts = _kitti_times(times, len(paths))
     else:
+        log.info("%s: no times.txt; assuming 10 Hz", root)
         ts = np.arange(len(paths)) * 0.1
     camera = None
     T_cam0_cam = np.eye(4)
@@ -206,6 +289,9 @@ def open_kitti(root: Path) -> ImageSequence:
                 raise InputError(f"bad ground truth: {exc}") from None
             if len(g) != len(paths):
                 raise InputError(f"{cand} has {len(g)} poses for {len(paths)} images")
+            if cam_name != "image_0" and not T_cam0_cam[:3, 3].any():
+                log.warning("%s: no P2 baseline in calib.txt; ground truth %s is of cam0 (image_0), "
+                            "used unchanged for image_2", root, cand)
             gt = Trajectory(ts, g.poses @ T_cam0_cam)
             break
     return ImageSequence(root, "kitti", paths, ts, camera=camera, ground_truth=gt)
@@ -369,6 +455,9 @@ def detect_layout(path: Path) -> str:
         return "7scenes"
     if (path / "frames" / "rgb").is_dir() or ((path / "rgb").is_dir() and (path / "extrinsic.txt").is_file()):
         return "vkitti2"
+    root_error = _kitti_root_error(path)
+    if root_error is not None:
+        raise root_error
     if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in path.iterdir() if p.is_file()):
         return "images"
     if not any(path.iterdir()):

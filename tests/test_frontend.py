@@ -136,7 +136,8 @@ def test_odometry_degrades_without_correspondences(rng):
     curr = dataclasses.replace(prev, frame_indices=np.array([1, 2]),
                                keys=[k + 10_000 for k in prev.keys])  # nothing in common
     edge = estimate_edge(0, prev, 1, curr)
-    assert edge.degraded and edge.method == "identity" and edge.num_correspondences == 0
+    assert edge.degraded and edge.method == "extrapolated" and edge.num_correspondences == 0
+    assert "0 correspondences" in edge.cause
     with pytest.raises(Exception, match="overlap frame"):
         estimate_edge(0, prev, 1, dataclasses.replace(prev, frame_indices=np.array([5, 6])))
 
@@ -206,7 +207,7 @@ def test_simulated_default_noise_drifts_with_distance(tmp_path, loop_sequence):
 
 
 class _Broken(Backbone):
-    """Returns NaN poses for frame 1 and no points at all in the second submap."""
+    """Returns NaN poses for frame 1, and no points at all for the second submap (nor for its bridge)."""
 
     name = "broken"
 
@@ -219,7 +220,7 @@ class _Broken(Backbone):
         T = pred.T_cam_submap.copy()
         if len(T) > 1:
             T[1] = np.nan
-        if self.calls == 2:
+        if self.calls in (2, 3):
             pred = dataclasses.replace(pred, points=[np.full_like(p, np.inf) for p in pred.points])
         return dataclasses.replace(pred, T_cam_submap=T)
 
@@ -230,6 +231,8 @@ def test_nan_and_empty_predictions_degrade_and_still_write_outputs(tmp_path, loo
     report = _run(loop_sequence, tmp_path / "broken", backbone=_Broken(inner))
     assert report["invalid_frames"] and report["points_per_submap"][1] == 0
     assert report["edges"][0]["degraded"] and report["edges"][1]["degraded"]
+    assert all(e["method"] == "extrapolated" and "bridge" in e["cause"] for e in report["edges"][:2])
+    assert report["degraded_edges"] == 2 and not any(e["degraded"] for e in report["edges"][2:])
     assert "non-finite poses" in caplog.text and "degraded" in caplog.text
     assert (tmp_path / "broken" / "keyframes_odometry.txt").is_file()
 

@@ -61,6 +61,7 @@ class BackboneConfig:
     replay_dir: str | None = None
     noise: str = "default"  # simulated: "default" or "zero"
     colmap_matcher: str = "exhaustive"  # colmap: "exhaustive" (all pairs in a submap) or "sequential"
+    deterministic: bool = False  # colmap: the mapper on one thread too (bit-identical runs; docs/frontend.md)
     seed: int = 0
 
 
@@ -97,7 +98,8 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
     if b.name == "colmap":
         from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
 
-        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher)
+        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
+                              deterministic=b.deterministic)
     if b.name == "replay":
         from vggt_slam_pp.frontend.backbones.replay import ReplayBackbone
 
@@ -176,6 +178,7 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
         backbone.close()
     total = time.perf_counter() - t0
     report = _report(source, config, result, total, t_read, error)
+    report.update(backbone.describe())
     report["timings"] = {**report.get("timings", {}), "backend_submit_s": feeder.seconds,
                          "backend_finish_wait_s": t_finish}
     if result is not None:
@@ -311,7 +314,11 @@ def _report(source: FrameSource, config: RunConfig, result: FrontendResult | Non
         "path_length_odometry": kf.path_length(),
         "edges": [{"prev": e.prev, "curr": e.curr, "method": e.method, "residual": e.residual,
                    "inlier_ratio": e.inlier_ratio, "correspondences": e.num_correspondences,
-                   "degraded": e.degraded} for e in result.edges],
+                   "shared_frames": e.shared_frames, "degraded": e.degraded, "cause": e.cause}
+                  for e in result.edges],
+        "degraded_edges": sum(e.degraded for e in result.edges),
+        "recovered_edges": sum(bool(e.cause) and not e.degraded for e in result.edges),
+        "registered_frames": int(sum(sm.prediction.valid[sm.overlap:].sum() for sm in result.submaps)),
         "invalid_frames": [int(i) for sm in result.submaps for i, v in
                            zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
         "points_per_submap": [sm.prediction.info.get("points_after_filter", sm.prediction.num_points())

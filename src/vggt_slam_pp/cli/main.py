@@ -163,9 +163,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = RunConfig(
         backbone=BackboneConfig(name=args.backbone, weights=args.weights, device=args.device,
                                 replay_dir=str(args.replay) if args.replay else None,
-                                noise=args.noise, seed=args.seed, colmap_matcher=args.matcher),
+                                noise=args.noise, seed=args.seed, colmap_matcher=args.matcher,
+                                deterministic=args.deterministic),
         frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=args.tau),
-                                submap_size=args.submap_size),
+                                submap_size=args.submap_size, overlap=args.overlap),
         calibrated=args.calibrated, save_predictions=not args.no_save_predictions,
         backend=not args.no_backend)
     if config.backend and args.encoder != "hog":
@@ -180,6 +181,18 @@ def _print_summary(report: dict, out) -> None:
     msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
     print(msg)
+    edges = report.get("edges", [])
+    degraded = [e for e in edges if e["degraded"]]
+    recovered = [e for e in edges if e.get("cause") and not e["degraded"]]
+    if degraded:
+        print(f"WARNING: {len(degraded)} of {len(edges)} odometry edges degraded (motion extrapolated, "
+              f"large uncertainty): " + "; ".join(f"{e['prev']}->{e['curr']} {e['cause']}" for e in degraded[:5]))
+    elif edges:
+        print(f"odometry: {len(edges)} edges, none degraded" +
+              (f" ({len(recovered)} recovered by a bridge)" if recovered else ""))
+    if report.get("camera", {}).get("source", "given") != "given":
+        cam = report["camera"]
+        print(f"camera ({cam['source']}): fx fy cx cy k1 k2 p1 p2 = " + " ".join(f"{v:.4g}" for v in cam["params"]))
     if "loops_accepted" in report:
         print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected; "
               f"back-end {report['backend_s_per_submap'] * 1000:.0f} ms per submap")
@@ -232,6 +245,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         summary = (f"HNSW recall@10 at 100k tiles {result['recall_at_10']:.3f} (target >= 0.95); latency "
                    f"{result['latency_ms_10k']:.3f} ms (10k) -> {result['latency_ms_100k']:.3f} ms (100k), ratio "
                    f"{result['latency_ratio_100k_10k']:.2f} (target <= 3)")
+    elif args.suite == "frontend":
+        data = args.data or _default_data()
+        result = benchmarks.bench_frontend(data, workdir=str(args.workdir or "runs/bench_frontend"), runs=args.runs,
+                                           sequences=args.sequence or None, deterministic=args.deterministic,
+                                           progress=lambda name: print(f"{name} ...", file=sys.stderr))
+        summary = _frontend_table(result)
     elif args.suite == "loops":
         result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
                                         workdir=str(args.workdir or "runs/bench_loops"),
@@ -261,6 +280,30 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         print(summary)
     return 0
+
+
+def _default_data() -> Path:
+    """``../shared/data`` next to the working folder or the source checkout, if there is one."""
+    here = Path(__file__).resolve().parents[3]
+    for cand in (Path.cwd().parent / "shared" / "data", here.parent / "shared" / "data"):
+        if cand.is_dir():
+            return cand
+    return Path.cwd().parent / "shared" / "data"
+
+
+def _frontend_table(result: dict) -> str:
+    head = (f"{'sequence':<20}{'runs':>5}{'ATE med':>9}{'worst':>8}{'std':>8}{'% path':>8}{'degraded':>9}"
+            f"{'recovered':>10}{'keyframes':>10}{'reg. min':>9}{'fps':>7}")
+    rows = [f"colmap front-end, seeds 0..{result['runs'] - 1}, no back-end; ATE: Sim(3)-aligned keyframes, metres",
+            head]
+    for r in result["sequences"]:
+        if "skipped" in r:
+            rows.append(f"{r['name']:<20}skipped: {r['skipped']}")
+            continue
+        rows.append(f"{r['name']:<20}{r['runs']:>5}{r['ate_median']:>9.4f}{r['ate_worst']:>8.4f}{r['ate_std']:>8.4f}"
+                    f"{r['ate_median_pct_path']:>7.2f}%{r['degraded_edges_total']:>9}{r['recovered_edges_total']:>10}"
+                    f"{r['keyframes_median']:>10.0f}{r['registered_frames_min']:>9}{r['fps']:>7.2f}")
+    return "\n".join(rows)
 
 
 def _loops_table(result: dict) -> str:
@@ -353,7 +396,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--noise", choices=("default", "zero"), default="default", help="simulated: noise model")
     r.add_argument("--matcher", choices=("exhaustive", "sequential"), default="exhaustive",
                    help="colmap: match all keyframe pairs of a submap (default) or sequentially")
-    r.add_argument("--submap-size", type=int, default=32, help="new keyframes per submap (w, default 32)")
+    r.add_argument("--submap-size", type=int, default=32,
+                   help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
+    r.add_argument("--overlap", type=int, default=0,
+                   help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
+                        "max(2, min(4, w/4)) for colmap)")
+    r.add_argument("--deterministic", action="store_true",
+                   help="colmap: run its mapper on one thread so that repeated runs are bit-identical (slower)")
     r.add_argument("--tau", type=float, default=40.0, help="keyframe LK disparity threshold, px (default 40)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--no-save-predictions", action="store_true", help="do not write predictions/")
@@ -362,7 +411,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency), "
                                      "covisibility, loops (the whole system on revisits), memory (long run)")
-    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "memory"))
+    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "memory", "frontend"))
+    b.add_argument("--runs", type=int, default=5, help="frontend: runs per sequence, seeds 0..N-1 (default 5)")
+    b.add_argument("--data", type=Path, help="frontend: folder with euroc_mh05_sample/ and strecha_castle_p30_loop/ "
+                                             "(default: ../shared/data when present)")
+    b.add_argument("--sequence", action="append", default=[],
+                   help="frontend: only this sequence (repeatable): euroc_uncalibrated, euroc_calibrated, castle, "
+                        "rendered")
+    b.add_argument("--deterministic", action="store_true", help="frontend: colmap's mapper on one thread")
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],

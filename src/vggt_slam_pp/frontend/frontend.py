@@ -2,7 +2,22 @@
 
 Submap assembly (SPEC 3.2): a submap closes when it holds ``submap_size`` (w = 32) *new* keyframes,
 and at the end of the input (the final partial submap is kept). Every submap after the first starts
-with one overlap frame, the previous submap's last keyframe, which links the two by odometry.
+with ``overlap`` frames, the previous submap's last registered keyframes, which link the two by
+odometry: one for dense backbones (the paper's choice: a dense frame gives thousands of
+correspondences), ``max(2, min(4, w // 4))`` for sparse ones (our decision, docs/frontend.md: a sparse
+frame gives a few hundred points, and a single frame is a single point of failure).
+
+Recovery (never a silent identity edge):
+
+1. the backbone retries internally (other initialisations, seeds) when it registers few frames;
+2. *split*: keyframes left unregistered at the end of a submap are handed to the next submap, so the
+   submap ends on a registered frame;
+3. *bridge*: when the shared frames do not link the new submap to the previous one, the new submap is
+   reconstructed again with more of the previous submap's registered keyframes in front;
+4. last resort, the edge is *extrapolated* (:func:`~vggt_slam_pp.frontend.odometry.extrapolated_edge`)
+   and flagged ``degraded`` with its cause; the back-end gives it a large uncertainty.
+
+Every recovery is logged and written into the edge's ``cause`` (``report.json``).
 """
 
 from __future__ import annotations
@@ -18,7 +33,7 @@ from vggt_slam_pp.errors import FrontendError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.filtering import FilterConfig, filter_points
 from vggt_slam_pp.frontend.keyframes import KeyframeConfig, KeyframeDecision, KeyframeSelector
-from vggt_slam_pp.frontend.odometry import OdometryConfig, chain, estimate_edge
+from vggt_slam_pp.frontend.odometry import OdometryConfig, chain, estimate_edge, linkable, with_cause
 from vggt_slam_pp.frontend.types import OdometryEdge, Submap, SubmapPrediction
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -31,18 +46,22 @@ log = logging.getLogger(__name__)
 class FrontendConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap_size: int = 32  # w: new keyframes per submap
+    overlap: int = 0  # keyframes shared with the previous submap; 0 = auto (1 dense, max(2, min(4, w // 4)) sparse)
+    bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, 2 * overlap))
     filter: FilterConfig = field(default_factory=FilterConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 
 
 class SubmapAssembler:
-    """Groups keyframes into submaps of ``size`` new keyframes plus the previous submap's last one."""
+    """Groups keyframes into submaps of ``size`` new keyframes plus ``overlap`` of the previous one's."""
 
-    def __init__(self, size: int) -> None:
+    def __init__(self, size: int, overlap: int = 1) -> None:
         if size < 1:
             raise FrontendError(f"submap size must be >= 1, got {size}")
-        self.size = size
-        self._overlap: Frame | None = None
+        if overlap < 1:
+            raise FrontendError(f"submap overlap must be >= 1, got {overlap}")
+        self.size, self.overlap = size, overlap
+        self._overlap: list[Frame] = []
         self._new: list[Frame] = []
 
     def add(self, keyframe: Frame) -> list[Frame] | None:
@@ -54,9 +73,15 @@ class SubmapAssembler:
         """The final partial submap, if any new keyframes are pending."""
         return self._close() if self._new else None
 
+    def settle(self, kept: list[Frame], overlap: list[Frame], carry: list[Frame]) -> None:
+        """After a submap was built: it kept ``kept``; the next submap starts with ``overlap`` (by default
+        its last frames) and the keyframes in ``carry`` (left unregistered) go before the pending ones."""
+        self._overlap = list(overlap) if overlap else kept[-self.overlap:]
+        self._new = list(carry) + self._new
+
     def _close(self) -> list[Frame]:
-        frames = ([self._overlap] if self._overlap is not None else []) + self._new
-        self._overlap, self._new = self._new[-1], []
+        frames = self._overlap + self._new
+        self._overlap, self._new = frames[-self.overlap:], []
         return frames
 
 
@@ -69,18 +94,18 @@ class FrontendResult:
     timings: dict[str, float]
 
     def keyframe_trajectory(self) -> Trajectory:
-        """``T_world_cam`` of every keyframe (Sim(3) in the odometry's scale), first occurrence kept."""
-        seen: set[int] = set()
-        ts, poses = [], []
+        """``T_world_cam`` of every keyframe (Sim(3) in the odometry's scale): its first registered
+        occurrence (a keyframe held by two submaps), else its first occurrence (a guessed pose)."""
+        chosen: dict[int, tuple[float, np.ndarray, bool]] = {}
         for sm, T_ws in zip(self.submaps, self.T_world_submap, strict=True):
             pred = sm.prediction
             for i, idx in enumerate(sm.frame_indices):
-                if int(idx) in seen:
-                    continue
-                seen.add(int(idx))
-                ts.append(sm.timestamps[i])
-                poses.append(T_ws @ sim3_inverse(pred.T_cam_submap[i]))
-        return Trajectory(np.array(ts), np.array(poses).reshape(-1, 4, 4))
+                have = chosen.get(int(idx))
+                if have is None or (not have[2] and pred.valid[i]):
+                    chosen[int(idx)] = (sm.timestamps[i], T_ws @ sim3_inverse(pred.T_cam_submap[i]), bool(pred.valid[i]))
+        order = sorted(chosen)
+        return Trajectory(np.array([chosen[k][0] for k in order]),
+                          np.array([chosen[k][1] for k in order]).reshape(-1, 4, 4))
 
     def all_frame_trajectory(self) -> Trajectory:
         """Every input frame: keyframes exact, the others interpolated in time (``interpolated`` mask)."""
@@ -94,13 +119,18 @@ class Frontend:
     def __init__(self, backbone: Backbone, config: FrontendConfig | None = None, store=None) -> None:
         self.backbone = backbone
         self.config = config or FrontendConfig()
-        self.selector = KeyframeSelector(self.config.keyframes)
-        self.assembler = SubmapAssembler(self.config.submap_size)
+        c = self.config
+        self.overlap = c.overlap or (1 if backbone.dense else max(2, min(4, c.submap_size // 4)))
+        self.bridge_frames = c.bridge_frames or max(4, 2 * self.overlap)
+        self.selector = KeyframeSelector(c.keyframes)
+        self.assembler = SubmapAssembler(c.submap_size, self.overlap)
         self.store = store  # optional PredictionStore recording every raw prediction
         self.submaps: list[Submap] = []
         self.edges: list[OdometryEdge] = []
         self.decisions: list[tuple[int, float, KeyframeDecision]] = []
         self.timings = {"keyframes_s": 0.0, "backbone_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0}
+        self._last_frames: list[Frame] = []  # keyframes (images) of the last submap, for a bridge
+        self._calls = 0  # backbone calls for the current submap (prediction file names)
 
     def process(self, frame: Frame) -> Submap | None:
         t = time.perf_counter()
@@ -127,35 +157,92 @@ class Frontend:
             self.submaps[k] = dataclasses.replace(sm, prediction=light)
 
     def finish(self) -> FrontendResult:
-        frames = self.assembler.flush()
-        if frames:
+        while (frames := self.assembler.flush()) is not None:  # a split may hand keyframes back
             self._build(frames)
         if not self.submaps:
             raise FrontendError("no frames were processed")
         return FrontendResult(self.submaps, self.edges, chain(self.edges), self.decisions, dict(self.timings))
 
-    def _build(self, frames: list[Frame]) -> Submap:
-        sid = len(self.submaps)
+    # -- one submap ---------------------------------------------------------------------------------
+    def _predict(self, sid: int, frames: list[Frame]) -> SubmapPrediction:
         t = time.perf_counter()
         raw = self.backbone.predict(frames)
         self.timings["backbone_s"] += time.perf_counter() - t
         raw = _sanitize(raw, frames)
         if self.store is not None:
-            self.store.save(sid, raw)
+            self.store.save(sid, raw, attempt=self._calls)
+        self._calls += 1
+        return raw
+
+    def _filtered(self, raw: SubmapPrediction) -> SubmapPrediction:
         t = time.perf_counter()
         pred = filter_points(raw, self.config.filter)
         self.timings["filter_s"] += time.perf_counter() - t
+        return pred
+
+    def _build(self, frames: list[Frame]) -> Submap:
+        sid = len(self.submaps)
+        self._calls = 0
+        prev = self.submaps[-1] if self.submaps else None
+        in_prev = set(prev.frame_indices.tolist()) if prev is not None else set()
+        n_shared = sum(1 for f in frames if f.index in in_prev)
+        raw = self._predict(sid, frames)
+        raw, frames, carry = _split_unregistered_tail(raw, frames, n_shared)
+        if carry:
+            log.warning("submap %d: keyframes %d..%d were not registered; they start the next submap",
+                        sid, carry[0].index, carry[-1].index)
+        pred = self._filtered(raw)
+        note = ""
+        if prev is not None and not linkable(prev.prediction, pred, self.config.odometry):
+            pred, frames, note = self._bridge(sid, prev, pred, frames)
         if pred.num_points() == 0:
             log.warning("submap %d: no points left after filtering", sid)
         submap = Submap(sid, np.array([f.index for f in frames]), np.array([f.timestamp for f in frames]),
-                        pred, has_overlap=sid > 0)
-        if self.submaps:
+                        pred, has_overlap=sid > 0, overlap=sum(1 for f in frames if f.index in in_prev))
+        if prev is not None:
             t = time.perf_counter()
-            self.edges.append(estimate_edge(sid - 1, self.submaps[-1].prediction, sid, pred, self.config.odometry))
+            edge = estimate_edge(sid - 1, prev.prediction, sid, pred, self.config.odometry)
+            self.edges.append(with_cause(edge, note) if note else edge)
             self.timings["odometry_s"] += time.perf_counter() - t
         self.submaps.append(submap)
-        log.info("submap %d: %d keyframes, %d points", sid, len(frames), pred.num_points())
+        self._last_frames = frames
+        registered = [f for f, v in zip(frames, pred.valid, strict=True) if v]
+        self.assembler.settle(frames, registered[-self.overlap:], carry)
+        log.info("submap %d: %d keyframes (%d registered), %d points", sid, len(frames), len(registered),
+                 pred.num_points())
         return submap
+
+    def _bridge(self, sid: int, prev: Submap, pred: SubmapPrediction, frames: list[Frame]
+                ) -> tuple[SubmapPrediction, list[Frame], str]:
+        """Reconstruct the submap again with up to ``bridge_frames`` more registered keyframes of the
+        previous submap in front; returns the better linked result and a note for the edge's cause."""
+        have = {f.index for f in frames}
+        valid = {int(i) for i, v in zip(prev.frame_indices, prev.prediction.valid, strict=True) if v}
+        extra = [f for f in self._last_frames if f.index in valid and f.index not in have][-self.bridge_frames:]
+        if not extra:
+            return pred, frames, ""
+        log.warning("submap %d is not linked to submap %d by its overlap frames; reconstructing it again with "
+                    "%d more keyframes of submap %d", sid, sid - 1, len(extra), sid - 1)
+        bridged = extra + frames
+        raw = self._predict(sid, bridged)
+        candidate = self._filtered(raw)
+        if linkable(prev.prediction, candidate, self.config.odometry):
+            return candidate, bridged, f"bridged: reconstructed again with {len(extra)} more keyframes of submap {sid - 1}"
+        return pred, frames, f"bridge with {len(extra)} more keyframes of submap {sid - 1} failed"
+
+
+def _split_unregistered_tail(raw: SubmapPrediction, frames: list[Frame], n_shared: int
+                             ) -> tuple[SubmapPrediction, list[Frame], list[Frame]]:
+    """Cut the keyframes after the last registered new keyframe off the submap: (kept prediction, kept
+    frames, carried frames). Nothing is cut when no new keyframe (beyond the ``n_shared`` overlap
+    frames) is registered: bridging and extrapolation handle that."""
+    valid = np.asarray(raw.valid, bool)
+    if valid[-1] or not valid[n_shared:].any():
+        return raw, frames, []
+    r = int(np.nonzero(valid)[0][-1]) + 1
+    if r <= max(n_shared, 1):
+        return raw, frames, []
+    return raw.select(np.arange(r)), frames[:r], frames[r:]
 
 
 def _sanitize(pred: SubmapPrediction, frames: list[Frame]) -> SubmapPrediction:

@@ -1,14 +1,21 @@
-"""Sim(3) odometry between consecutive submaps through their shared overlap frame (SPEC 3.5).
+"""Sim(3) odometry between consecutive submaps through their shared overlap frames (SPEC 3.5).
 
-The overlap frame is the previous submap's last keyframe and the current submap's first. Its
-observations carry the same ``keys`` in both predictions, which gives 3-D/3-D correspondences.
+The overlap frames are the previous submap's last keyframes and the current submap's first ones (one
+for dense backbones, as in the paper; several for sparse ones, see ``FrontendConfig.overlap``). Their
+observations carry the same ``keys`` in both predictions, which gives 3-D/3-D correspondences. Only
+frames registered (``valid``) in both submaps are used.
 
 * ``points`` (dense backbones): robust Sim(3) (RANSAC over Umeyama + refit) on the corresponding
-  points, ``T_prev_curr`` maps current-submap points into the previous submap.
+  points of every shared frame, ``T_prev_curr`` maps current-submap points into the previous submap.
 * ``pose_scale`` (sparse backbones, as measured on COLMAP submaps): rotation and translation from the
-  overlap frame's own pose in both submaps, scale from the median ratio of the corresponding points'
-  distances to that camera (robust to a few bad points), so
-  ``T_prev_curr = T_prev_cam · S(s) · T_cam_curr``.
+  shared frames' own poses in both submaps (rotations averaged, camera centres aligned), scale from the
+  median ratio of the corresponding points' distances to their camera, pooled over the shared frames
+  (robust to a few bad points). With one shared frame this is ``T_prev_cam · S(s) · T_cam_curr``.
+
+When no shared frame gives enough correspondences the edge *degrades*: :func:`extrapolated_edge`
+(the overlap camera assumed to coincide, scale from the two submaps' median depths) with
+``degraded=True`` and its ``cause``; the back-end gives such edges a large uncertainty. The front-end
+first tries to avoid this (:mod:`vggt_slam_pp.frontend.frontend`: retries and bridging).
 
 Chaining: ``T_world_curr = T_world_prev · T_prev_curr`` with the first submap's frame as the world.
 """
@@ -16,7 +23,7 @@ Chaining: ``T_world_curr = T_world_prev · T_prev_curr`` with the first submap's
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,61 +45,144 @@ class OdometryConfig:
     seed: int = 0
 
 
+@dataclass(frozen=True)
+class SharedFrame:
+    """One keyframe reconstructed in both submaps: its positions and its key-matched points."""
+
+    prev_pos: int  # index in the previous submap
+    curr_pos: int  # index in the current submap
+    p_prev: np.ndarray  # [M,3] points in the previous submap's frame
+    p_curr: np.ndarray  # [M,3] the same observations in the current submap's frame
+
+
+def shared_frames(prev: SubmapPrediction, curr: SubmapPrediction) -> list[SharedFrame]:
+    """Keyframes of ``curr`` that ``prev`` also holds and that are valid in both, with their
+    key-matched point pairs (in submap order)."""
+    where = {int(f): i for i, f in enumerate(prev.frame_indices)}
+    out = []
+    for ic, f in enumerate(curr.frame_indices):
+        ip = where.get(int(f))
+        if ip is None or not (prev.valid[ip] and curr.valid[ic]):
+            continue
+        _, a, b = np.intersect1d(prev.keys[ip], curr.keys[ic], assume_unique=False, return_indices=True)
+        out.append(SharedFrame(ip, ic, prev.points[ip][a], curr.points[ic][b]))
+    return out
+
+
 def overlap_correspondences(prev: SubmapPrediction, curr: SubmapPrediction) -> tuple[np.ndarray, np.ndarray]:
-    """Points of the overlap frame in (prev submap, curr submap) coordinates, paired by key: [M,3] x 2."""
-    kp, kc = prev.keys[-1], curr.keys[0]
-    _, ip, ic = np.intersect1d(kp, kc, assume_unique=False, return_indices=True)
-    return prev.points[-1][ip], curr.points[0][ic]
+    """Points of every shared frame in (prev submap, curr submap) coordinates, paired by key: [M,3] x 2."""
+    shared = shared_frames(prev, curr)
+    if not shared:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate([s.p_prev for s in shared]), np.concatenate([s.p_curr for s in shared])
 
 
 def estimate_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: SubmapPrediction,
                   config: OdometryConfig | None = None) -> OdometryEdge:
-    """``T_prev_curr`` with its residual and inlier ratio; degrades (logged) instead of raising."""
+    """``T_prev_curr`` with its residual and inlier ratio; degrades (logged, ``degraded=True`` with a
+    ``cause``) instead of raising when the shared frames do not link the submaps."""
     c = config or OdometryConfig()
-    if prev.frame_indices[-1] != curr.frame_indices[0]:
+    if not np.isin(curr.frame_indices, prev.frame_indices).any():
         raise GeometryError(f"submaps {prev_id} and {curr_id} do not share an overlap frame")
     method = c.method if c.method != "auto" else ("points" if curr.dense else "pose_scale")
-    p_prev, p_curr = overlap_correspondences(prev, curr)
-    n = len(p_prev)
-    if n > c.max_correspondences:
-        pick = np.random.default_rng(c.seed).choice(n, c.max_correspondences, replace=False)
-        p_prev, p_curr = p_prev[pick], p_curr[pick]
-    if len(p_prev) < c.min_correspondences:
-        return _degraded(prev_id, prev, curr_id, curr, n, f"only {n} correspondences in the overlap frame")
+    shared = [s for s in shared_frames(prev, curr) if len(s.p_prev)]
+    n = int(sum(len(s.p_prev) for s in shared))
+    if n < c.min_correspondences:
+        return extrapolated_edge(prev_id, prev, curr_id, curr, _link_cause(prev, curr, n), n)
     try:
         if method == "points":
+            p_prev = np.concatenate([s.p_prev for s in shared])
+            p_curr = np.concatenate([s.p_curr for s in shared])
+            if n > c.max_correspondences:
+                pick = np.random.default_rng(c.seed).choice(n, c.max_correspondences, replace=False)
+                p_prev, p_curr = p_prev[pick], p_curr[pick]
             fit = estimate_sim3_robust(p_curr, p_prev, relative_threshold=c.relative_threshold, seed=c.seed)
-            return OdometryEdge(prev_id, curr_id, fit.T_dst_src, fit.rmse, fit.inlier_ratio, n, "points")
+            return OdometryEdge(prev_id, curr_id, fit.T_dst_src, fit.rmse, fit.inlier_ratio, n, "points",
+                                shared_frames=len(shared))
         if method == "pose_scale":
-            return _pose_scale(prev_id, prev, curr_id, curr, p_prev, p_curr, n)
+            return _pose_scale(prev_id, prev, curr_id, curr, shared, n)
     except GeometryError as exc:
-        return _degraded(prev_id, prev, curr_id, curr, n, str(exc))
+        return extrapolated_edge(prev_id, prev, curr_id, curr, str(exc), n)
     raise GeometryError(f"unknown odometry method {method!r}")
 
 
-def _pose_scale(prev_id, prev, curr_id, curr, p_prev, p_curr, n) -> OdometryEdge:
-    T_cam_prev = prev.T_cam_submap[-1]  # overlap camera in the previous submap
-    T_cam_curr = curr.T_cam_submap[0]
-    d_prev = np.linalg.norm(transform_points(T_cam_prev, p_prev), axis=1)
-    d_curr = np.linalg.norm(transform_points(T_cam_curr, p_curr), axis=1)
-    ok = (d_prev > 1e-9) & (d_curr > 1e-9)
-    if ok.sum() < 3:
-        raise GeometryError("no points with positive depth in the overlap frame")
-    ratios = d_prev[ok] / d_curr[ok]
+def linkable(prev: SubmapPrediction, curr: SubmapPrediction, config: OdometryConfig | None = None) -> bool:
+    """Whether :func:`estimate_edge` would find enough correspondences (not degrade for lack of them)."""
+    c = config or OdometryConfig()
+    return sum(len(s.p_prev) for s in shared_frames(prev, curr)) >= c.min_correspondences
+
+
+def _link_cause(prev: SubmapPrediction, curr: SubmapPrediction, n: int) -> str:
+    common = [int(f) for f in curr.frame_indices if f in set(prev.frame_indices.tolist())]
+    pos_p = {int(f): i for i, f in enumerate(prev.frame_indices)}
+    pos_c = {int(f): i for i, f in enumerate(curr.frame_indices)}
+    unreg = [f for f in common if not (prev.valid[pos_p[f]] and curr.valid[pos_c[f]])]
+    if unreg and len(unreg) == len(common):
+        return f"overlap frame(s) {unreg} not registered in both submaps"
+    return f"only {n} correspondences in the overlap frame(s) {common}"
+
+
+def _mean_rotation(Rs: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations [K,3,3]."""
+    U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _pose_scale(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int) -> OdometryEdge:
+    ratios, Rs, c_prev, c_curr, p_prev, p_curr = [], [], [], [], [], []
+    for f in shared:
+        T_cam_prev, T_cam_curr = prev.T_cam_submap[f.prev_pos], curr.T_cam_submap[f.curr_pos]
+        d_prev = np.linalg.norm(transform_points(T_cam_prev, f.p_prev), axis=1)
+        d_curr = np.linalg.norm(transform_points(T_cam_curr, f.p_curr), axis=1)
+        ok = (d_prev > 1e-9) & (d_curr > 1e-9)
+        if ok.sum() < 3:
+            continue
+        ratios.append(d_prev[ok] / d_curr[ok])
+        p_prev.append(f.p_prev[ok])
+        p_curr.append(f.p_curr[ok])
+        Rs.append(T_cam_prev[:3, :3].T @ T_cam_curr[:3, :3])  # R_prev_curr seen through this frame
+        c_prev.append(sim3_inverse(T_cam_prev)[:3, 3])
+        c_curr.append(sim3_inverse(T_cam_curr)[:3, 3])
+    if not Rs:
+        raise GeometryError("no points with positive depth in the overlap frames")
+    ratios = np.concatenate(ratios)
     s = float(np.median(ratios))
-    T = sim3_inverse(T_cam_prev) @ make_sim3(s, np.eye(3), np.zeros(3)) @ T_cam_curr
-    r = np.linalg.norm(transform_points(T, p_curr) - p_prev, axis=1)
+    R = _mean_rotation(np.array(Rs))
+    t = np.median(np.array(c_prev) - s * np.array(c_curr) @ R.T, axis=0)  # c_prev = s R c_curr + t
+    T = make_sim3(s, R, t)
+    r = np.linalg.norm(transform_points(T, np.concatenate(p_curr)) - np.concatenate(p_prev), axis=1)
     inl = np.abs(np.log(ratios / s)) < 0.05
-    resid = float(np.sqrt(np.mean(r[ok][inl] ** 2))) if inl.any() else float("nan")
-    return OdometryEdge(prev_id, curr_id, T, resid, float(inl.mean()), n, "pose_scale")
+    resid = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan")
+    return OdometryEdge(prev_id, curr_id, T, resid, float(inl.mean()), n, "pose_scale", shared_frames=len(Rs))
 
 
-def _degraded(prev_id, prev, curr_id, curr, n, why: str) -> OdometryEdge:
-    """Without usable correspondences: assume the overlap camera coincides in both submaps, scale 1."""
-    log.warning("odometry %d -> %d degraded (%s): using the overlap frame's poses with scale 1",
-                prev_id, curr_id, why)
-    T = se3_inverse(prev.T_cam_submap[-1]) @ curr.T_cam_submap[0]
-    return OdometryEdge(prev_id, curr_id, T, float("nan"), 0.0, n, "identity", degraded=True)
+def _median_depth(pred: SubmapPrediction, positions) -> float:
+    d = [np.linalg.norm(pred.camera_points(i), axis=1) for i in positions if pred.valid[i] and len(pred.points[i])]
+    d = np.concatenate(d) if d else np.zeros(0)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else float("nan")
+
+
+def extrapolated_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: SubmapPrediction,
+                      cause: str, n: int = 0) -> OdometryEdge:
+    """The last resort, flagged ``degraded``: the first shared keyframe's camera is assumed to be where
+    the previous submap put it (its pose there, or the nearest registered neighbour's), and the scale is
+    the ratio of the two submaps' median point depths around the overlap (1 when unknown)."""
+    where = {int(f): i for i, f in enumerate(prev.frame_indices)}
+    ic = next((i for i, f in enumerate(curr.frame_indices) if int(f) in where and curr.valid[i]), None)
+    if ic is None:
+        ic = next(i for i, f in enumerate(curr.frame_indices) if int(f) in where)
+    ip = where[int(curr.frame_indices[ic])]
+    k = max(1, min(4, prev.num_frames // 2, curr.num_frames // 2))
+    d_prev = _median_depth(prev, range(prev.num_frames - k, prev.num_frames))
+    d_curr = _median_depth(curr, range(k))
+    s = d_prev / d_curr if np.isfinite(d_prev) and np.isfinite(d_curr) and d_curr > 0 else 1.0
+    T = se3_inverse(prev.T_cam_submap[ip]) @ make_sim3(s, np.eye(3), np.zeros(3)) @ curr.T_cam_submap[ic]
+    log.warning("odometry %d -> %d degraded (%s): motion extrapolated through frame %d, scale %.3g from "
+                "median depths; the back-end gives it a large uncertainty", prev_id, curr_id, cause,
+                int(curr.frame_indices[ic]), s)
+    return OdometryEdge(prev_id, curr_id, T, float("nan"), 0.0, n, "extrapolated", degraded=True, cause=cause)
 
 
 def chain(edges: list[OdometryEdge]) -> list[np.ndarray]:
@@ -101,3 +191,8 @@ def chain(edges: list[OdometryEdge]) -> list[np.ndarray]:
     for e in edges:
         poses.append(poses[-1] @ e.T_prev_curr)
     return poses
+
+
+def with_cause(edge: OdometryEdge, note: str) -> OdometryEdge:
+    """``edge`` with ``note`` appended to its cause (how it was recovered, for the report)."""
+    return replace(edge, cause=f"{edge.cause}; {note}" if edge.cause else note)

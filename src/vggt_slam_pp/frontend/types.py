@@ -15,6 +15,7 @@ keys give the correspondences between consecutive submaps.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,6 +76,18 @@ class SubmapPrediction:
     def num_points(self) -> int:
         return int(sum(len(p) for p in self.points))
 
+    def select(self, positions: np.ndarray) -> SubmapPrediction:
+        """The prediction of the frames at ``positions`` only (poses stay in this submap's frame)."""
+        pos = np.asarray(positions, dtype=np.int64)
+        pick = [int(i) for i in pos]
+        return dataclasses.replace(
+            self, frame_indices=self.frame_indices[pos], T_cam_submap=self.T_cam_submap[pos],
+            intrinsics=self.intrinsics[pos], to_original=self.to_original[pos], valid=self.valid[pos],
+            points=[self.points[i] for i in pick], conf=[self.conf[i] for i in pick],
+            pixels=[self.pixels[i] for i in pick], keys=[self.keys[i] for i in pick],
+            depth=None if self.depth is None else self.depth[pos],
+            depth_conf=None if self.depth_conf is None else self.depth_conf[pos])
+
     def camera_points(self, i: int) -> np.ndarray:
         """Frame i's points in its own camera frame [Ni,3]."""
         T = self.T_cam_submap[i]
@@ -86,10 +99,11 @@ class Submap:
     """One submap: its id, keyframes and the backbone's (filtered) prediction."""
 
     id: int
-    frame_indices: np.ndarray  # [S] source indices; element 0 is the overlap frame for id > 0
+    frame_indices: np.ndarray  # [S] source indices; the first ``overlap`` are the previous submap's last ones
     timestamps: np.ndarray  # [S]
     prediction: SubmapPrediction
     has_overlap: bool
+    overlap: int = 0  # how many leading keyframes the previous submap also holds (0 for the first)
 
 
 @dataclass(frozen=True)
@@ -102,5 +116,7 @@ class OdometryEdge:
     residual: float  # RMS 3-D residual of the inliers, in prev-submap units
     inlier_ratio: float
     num_correspondences: int
-    method: str  # "points" or "pose_scale", or "identity" when it had to degrade
-    degraded: bool = False
+    method: str  # "points" or "pose_scale", or "extrapolated" when it had to degrade
+    degraded: bool = False  # no measured link: the back-end gives the edge a large uncertainty
+    cause: str = ""  # why it degraded, or how it was recovered ("" for a plain edge)
+    shared_frames: int = 1  # keyframes reconstructed in both submaps that the estimate used

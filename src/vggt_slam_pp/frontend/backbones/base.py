@@ -25,6 +25,10 @@ class Backbone(ABC):
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         """``frames`` (S >= 1 keyframes, in order) -> prediction for those frames."""
 
+    def describe(self) -> dict:
+        """What the backbone estimated for the whole run, for the report (e.g. the shared camera)."""
+        return {}
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release resources (models, temporary folders)."""
 

@@ -20,11 +20,22 @@ triangulated keypoints of each image: ``keys`` are SIFT keypoint indices, identi
 in two submaps, so the overlap frame links submaps (odometry method ``pose_scale``). Confidence per
 point: ``track_length / (1 + reprojection error)``.
 
-Failures degrade instead of raising: when the mapper does not initialise, it is retried with a lower
-initial triangulation angle (16 -> 4 -> 2 degrees) and fewer required inliers; frames left unregistered
-are marked ``valid=False`` with the nearest registered neighbour's pose, and a submap that cannot be
-reconstructed at all is returned with every frame invalid (identity poses, no points), which the
-odometry then reports as a degraded edge.
+Failures degrade instead of raising: while some keyframes stay unregistered, mapping is retried
+(``ATTEMPTS``: lower initial triangulation angles 16 -> 4 -> 2 degrees with fewer required inliers,
+and other random seeds), keeping the attempt that registers most frames; with an estimated camera held
+fixed, a collapsed registration (< half the frames) is retried with the intrinsics refined, and a sane
+new estimate replaces the old one. Frames left unregistered are marked ``valid=False`` with the nearest
+registered neighbour's pose (the front-end splits them off or bridges, see ``frontend.py``), and a
+submap that cannot be reconstructed at all is returned with every frame invalid (identity poses, no
+points).
+
+Determinism: feature extraction and matching run on one thread (their multi-threaded RANSAC draws
+depend on the thread schedule), the mapper uses ``random_seed`` = the run's seed plus the attempt;
+``deterministic`` also runs the mapper on one thread (docs/frontend.md gives the measured cost).
+
+Estimated intrinsics must be physically sensible (``intrinsics_sane``: focal 0.3-4x the image's larger
+side, aspect within 10 %, principal point in the middle 40 %, |k1|, |k2| < 1, |p1|, |p2| < 0.05);
+an estimate outside the bounds is not adopted (logged).
 """
 
 from __future__ import annotations
@@ -45,7 +56,24 @@ from vggt_slam_pp.io.frames import Frame
 
 log = logging.getLogger(__name__)
 
-INIT_ANGLES = (16.0, 4.0, 2.0)
+# mapping attempts while keyframes stay unregistered: (initial triangulation angle in degrees, seed offset)
+ATTEMPTS = ((16.0, 0), (4.0, 0), (16.0, 1), (2.0, 0), (8.0, 2))
+
+
+def intrinsics_sane(params, width: int, height: int) -> str:
+    """Why OPENCV ``params`` (fx, fy, cx, cy, k1, k2, p1, p2) are implausible for a ``width`` x
+    ``height`` image, or "" when they are sensible."""
+    fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in params)
+    side = max(width, height)
+    if not 0.3 * side <= fx <= 4 * side or not 0.3 * side <= fy <= 4 * side:
+        return f"focal length {fx:.0f}/{fy:.0f} px outside 0.3-4x the image side ({side} px)"
+    if abs(fx / fy - 1) > 0.1:
+        return f"focal lengths {fx:.0f} and {fy:.0f} px differ by more than 10 %"
+    if not (0.3 * width <= cx <= 0.7 * width and 0.3 * height <= cy <= 0.7 * height):
+        return f"principal point ({cx:.0f}, {cy:.0f}) far from the image centre"
+    if abs(k1) >= 1 or abs(k2) >= 1 or abs(p1) >= 0.05 or abs(p2) >= 0.05:
+        return f"distortion ({k1:.3g}, {k2:.3g}, {p1:.3g}, {p2:.3g}) out of bounds"
+    return ""
 
 
 class ColmapBackbone(Backbone):
@@ -54,7 +82,7 @@ class ColmapBackbone(Backbone):
 
     def __init__(self, calibrated: bool = False, max_features: int = 4096, overlap: int = 10,
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
-                 freeze_estimated: bool = True, matcher: str = "exhaustive") -> None:
+                 freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = False) -> None:
         import pycolmap
 
         if not log.isEnabledFor(logging.DEBUG):  # COLMAP's own (glog) chatter only when debugging
@@ -68,9 +96,15 @@ class ColmapBackbone(Backbone):
         self.overlap = overlap
         self.num_threads = num_threads
         self.seed = seed
+        self.deterministic = deterministic
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
         self._estimated: tuple[tuple[int, int], list[float]] | None = None  # (size, OPENCV params)
+        self.camera: dict = {}  # the shared camera for the report: model, params, source, history
+        self._span = (0, 0)  # first and last frame index of the submap being reconstructed
+
+    def describe(self) -> dict:
+        return {"camera": dict(self.camera)} if self.camera else {}
 
     # -- COLMAP steps ---------------------------------------------------------------------------
     def _camera_options(self, frame: Frame):
@@ -99,14 +133,14 @@ class ColmapBackbone(Backbone):
         db = work / "database.db"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.use_gpu = False
-        extraction.num_threads = self.num_threads
+        extraction.num_threads = 1  # deterministic (module docstring)
         extraction.sift.max_num_features = self.max_features
         pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=self._camera_options(frames[0]),
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
         matching = pycolmap.FeatureMatchingOptions()
         matching.use_gpu = False
-        matching.num_threads = self.num_threads
+        matching.num_threads = 1
         if self.matcher == "exhaustive":
             pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         else:
@@ -115,44 +149,77 @@ class ColmapBackbone(Backbone):
             pairing.loop_detection = False
             pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                       device=pycolmap.Device.cpu)
-        best = None
-        for attempt, angle in enumerate(INIT_ANGLES):
-            opts = pycolmap.IncrementalPipelineOptions()
-            opts.num_threads = self.num_threads
-            opts.random_seed = self.seed
-            opts.multiple_models = False
-            opts.mapper.init_min_tri_angle = angle
-            if attempt:
-                opts.mapper.init_min_num_inliers = 50
-                opts.min_model_size = 3
-            fixed = (self.calibrated and frames[0].intrinsics is not None) or \
-                (self.freeze_estimated and self._estimated is not None)
-            if fixed:
-                opts.ba_refine_focal_length = False
-                opts.ba_refine_principal_point = False
-                opts.ba_refine_extra_params = False
-            out = work / f"sparse{attempt}"
-            out.mkdir()
-            try:
-                recs = pycolmap.incremental_mapping(db, images, out, options=opts)
-            except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
-                log.warning("colmap mapping attempt %d failed: %s", attempt, exc)
-                recs = {}
-            if recs:
-                rec = max(recs.values(), key=lambda r: r.num_reg_images())
-                if best is None or rec.num_reg_images() > best.num_reg_images():
-                    best = rec
-                if rec.num_reg_images() == len(frames):
-                    break
-            log.info("colmap: %d/%d images registered with init angle %.0f deg; retrying with a lower angle",
-                     0 if not recs else best.num_reg_images(), len(frames), angle)
+        given = self.calibrated and frames[0].intrinsics is not None
+        best, attempt = None, 0
+        refine = not (given or (self.freeze_estimated and self._estimated is not None))
+        for angle, seed_offset in ATTEMPTS:
+            rec = self._map(db, images, work / f"sparse{attempt}", angle, seed_offset, attempt, refine)
+            attempt += 1
+            if rec is not None and (best is None or rec.num_reg_images() > best.num_reg_images()):
+                best = rec
+            registered = 0 if best is None else best.num_reg_images()
+            if registered == len(frames):
+                break
+            log.info("colmap: %d/%d images registered (init angle %.0f deg, seed +%d); retrying",
+                     registered, len(frames), angle, seed_offset)
+        registered = 0 if best is None else best.num_reg_images()
+        if not refine and not given and registered < len(frames) / 2:
+            log.warning("colmap: only %d/%d images registered with the estimated camera held fixed; "
+                        "re-estimating the intrinsics", registered, len(frames))
+            rec = self._map(db, images, work / f"sparse{attempt}", ATTEMPTS[0][0], 0, attempt, True)
+            if rec is not None and rec.num_reg_images() > registered:
+                best = rec
+                self._adopt_camera(rec, len(frames), "re-estimated after a registration collapse")
         return best, names
+
+    def _map(self, db: Path, images: Path, out: Path, angle: float, seed_offset: int, attempt: int,
+             refine: bool):
+        """One incremental-mapping attempt; the reconstruction with most registered images, or None."""
+        import pycolmap
+
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.num_threads = 1 if self.deterministic else self.num_threads
+        opts.random_seed = self.seed + seed_offset
+        opts.multiple_models = False
+        opts.mapper.init_min_tri_angle = angle
+        if attempt:
+            opts.mapper.init_min_num_inliers = 50
+            opts.min_model_size = 3
+        if not refine:
+            opts.ba_refine_focal_length = False
+            opts.ba_refine_principal_point = False
+            opts.ba_refine_extra_params = False
+        out.mkdir()
+        try:
+            recs = pycolmap.incremental_mapping(db, images, out, options=opts)
+        except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+            log.warning("colmap mapping attempt %d failed: %s", attempt, exc)
+            return None
+        return max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+
+    def _adopt_camera(self, rec, S: int, source: str) -> None:
+        """Hold ``rec``'s estimated camera for the rest of the sequence when it is sensible."""
+        cam = next(iter(rec.cameras.values()))
+        params = [float(v) for v in cam.params]
+        why = intrinsics_sane(params, int(cam.width), int(cam.height))
+        history = self.camera.get("history", [])
+        history.append({"keyframes": list(self._span), "params": params, "registered": rec.num_reg_images(),
+                        "frames": S, "adopted": not why, "reason": why or source})
+        if why:
+            log.warning("colmap: estimated intrinsics not adopted: %s", why)
+            self.camera = {**self.camera, "history": history}
+            return
+        self._estimated = ((int(cam.width), int(cam.height)), params)
+        self.camera = {"model": "OPENCV", "params": params, "width": int(cam.width), "height": int(cam.height),
+                       "source": source, "history": history}
+        log.info("colmap: camera %s (fx fy cx cy k1 k2 p1 p2) %s", source, " ".join(f"{v:.4g}" for v in params))
 
     # -- conversion -----------------------------------------------------------------------------
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         S = len(frames)
         work = Path(tempfile.mkdtemp(prefix="vggt_slam_colmap_"))
         self._count += 1
+        self._span = (int(frames[0].index), int(frames[-1].index))
         try:
             rec, names = self._reconstruct(work, frames) if S >= 2 else (None, [])
             return self._to_prediction(rec, names, frames)
@@ -176,10 +243,14 @@ class ColmapBackbone(Backbone):
             return SubmapPrediction(indices, np.repeat(np.eye(4)[None], S, 0), eye.copy(), (h, w), eye,
                                     valid=np.zeros(S, bool), dense=False, info={"registered": 0}, **empty)
         by_name = {img.name: img for img in rec.images.values() if img.has_pose}
-        if not self.calibrated and rec.num_reg_images() >= max(3, S // 2) and \
+        if self.calibrated and frames[0].intrinsics is not None:
+            if not self.camera:
+                cam = next(iter(rec.cameras.values()))
+                self.camera = {"model": "OPENCV", "params": [float(v) for v in cam.params], "source": "given",
+                               "width": int(cam.width), "height": int(cam.height)}
+        elif rec.num_reg_images() >= max(3, S // 2) and \
                 not (self.freeze_estimated and self._estimated is not None):
-            cam = next(iter(rec.cameras.values()))
-            self._estimated = ((int(cam.width), int(cam.height)), [float(v) for v in cam.params])
+            self._adopt_camera(rec, S, f"estimated on keyframes {self._span[0]}..{self._span[1]}")
         T_cam_world = np.full((S, 4, 4), np.nan)
         Ks = np.zeros((S, 3, 3))
         valid = np.zeros(S, bool)

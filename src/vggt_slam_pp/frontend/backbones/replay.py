@@ -73,11 +73,13 @@ class PredictionStore:
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
 
-    def path(self, submap_id: int) -> Path:
-        return self.folder / f"submap_{submap_id:05d}.safetensors"
+    def path(self, submap_id: int, attempt: int = 0) -> Path:
+        suffix = f"_{attempt}" if attempt else ""
+        return self.folder / f"submap_{submap_id:05d}{suffix}.safetensors"
 
-    def save(self, submap_id: int, pred: SubmapPrediction) -> None:
-        save_prediction(self.path(submap_id), pred)
+    def save(self, submap_id: int, pred: SubmapPrediction, attempt: int = 0) -> None:
+        """Save the ``attempt``-th backbone call for this submap (later ones: a bridge)."""
+        save_prediction(self.path(submap_id, attempt), pred)
 
     def all(self) -> list[Path]:
         return sorted(self.folder.glob("submap_*.safetensors"))

@@ -164,3 +164,28 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
     code, out, _ = _run(capsys, "bench", "covisibility", "--seed", 3, "--json")
     assert code == 0 and seen["covisibility"]["seed"] == 3 and json.loads(out)["scenes"] == {}
     assert _run(capsys, "bench", "loops", "--json")[0] == 0 and seen["loops"]["seed"] == 0
+
+
+def test_bench_frontend_reports_missing_data_as_skipped(tmp_path, capsys):
+    code, out, _ = _run(capsys, "bench", "frontend", "--data", tmp_path / "nothing", "--sequence", "castle",
+                        "--sequence", "euroc_calibrated", "--runs", 2, "--json", "--workdir", tmp_path / "w")
+    result = json.loads(out)
+    assert code == 0 and result["runs"] == 2 and result["deterministic"] is True
+    assert [r["name"] for r in result["sequences"]] == ["euroc_calibrated", "castle"]
+    assert all("no data" in r["skipped"] for r in result["sequences"])
+
+
+def test_run_summary_says_how_many_edges_degraded(capsys):
+    from vggt_slam_pp.cli.main import _print_summary
+
+    report = {"frames_processed": 10, "keyframes": 6, "submaps": 3, "seconds_total": 1.0, "fps": 10.0,
+              "edges": [{"prev": 0, "curr": 1, "degraded": False, "cause": ""},
+                        {"prev": 1, "curr": 2, "degraded": True, "cause": "overlap frame(s) [5] not registered"}],
+              "camera": {"source": "estimated on keyframes 0..4", "params": [400.0, 400, 320, 240, 0, 0, 0, 0]}}
+    _print_summary(report, "out")
+    out = capsys.readouterr().out
+    assert "WARNING: 1 of 2 odometry edges degraded" in out and "1->2 overlap frame(s) [5] not registered" in out
+    assert "camera (estimated on keyframes 0..4)" in out
+    report["edges"][1]["degraded"] = False
+    _print_summary(report, "out")
+    assert "odometry: 2 edges, none degraded" in capsys.readouterr().out

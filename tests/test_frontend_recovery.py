@@ -108,3 +108,15 @@ def test_unregistered_keyframes_at_a_submaps_end_start_the_next_submap(tmp_path,
     assert "start the next submap" in caplog.text
     assert report["degraded_edges"] == 0 and _exact(report)
     assert report["registered_frames"] == report["keyframes"]  # every keyframe registered once, somewhere
+
+
+def test_implausible_estimated_intrinsics_are_refused():
+    pytest.importorskip("pycolmap")
+    from vggt_slam_pp.frontend.backbones.colmap import intrinsics_sane
+
+    euroc = [458.7, 457.3, 367.2, 248.4, -0.283, 0.074, 0.0002, 0.00002]
+    assert intrinsics_sane(euroc, 752, 480) == ""
+    assert "differ" in intrinsics_sane([425, 355, 376, 240, -0.2, 0.05, 0, 0], 752, 480)  # seen on EuRoC
+    assert "focal" in intrinsics_sane([100, 100, 376, 240, 0, 0, 0, 0], 752, 480)
+    assert "principal point" in intrinsics_sane([460, 460, 30, 240, 0, 0, 0, 0], 752, 480)
+    assert "distortion" in intrinsics_sane([460, 460, 376, 240, -1.5, 0, 0, 0], 752, 480)

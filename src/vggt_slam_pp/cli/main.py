@@ -83,7 +83,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     scene = make_scene(args.scene, trajectory_file=args.trajectory, frames=args.frames, seed=args.seed,
                        width=args.width, height=args.height, style=args.style)
-    summary = write_sequence(scene, args.out, depth_scale=args.depth_scale,
+    summary = write_sequence(scene, args.out, depth_scale=args.depth_scale, aperiodic=args.texture == "aperiodic",
                              progress=_progress(len(scene.trajectory), "render", args.json))
     if args.json:
         _print_json(summary)
@@ -192,7 +192,8 @@ def _print_summary(report: dict, out) -> None:
               (f" ({len(recovered)} recovered by a bridge)" if recovered else ""))
     if report.get("camera", {}).get("source", "given") != "given":
         cam = report["camera"]
-        print(f"camera ({cam['source']}): fx fy cx cy k1 k2 p1 p2 = " + " ".join(f"{v:.4g}" for v in cam["params"]))
+        names = "f cx cy k1 k2" if cam.get("model") == "RADIAL" else "fx fy cx cy k1 k2 p1 p2"
+        print(f"camera ({cam['source']}): {names} = " + " ".join(f"{v:.4g}" for v in cam["params"]))
     if "loops_accepted" in report:
         print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected; "
               f"back-end {report['backend_s_per_submap'] * 1000:.0f} ms per submap")
@@ -374,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--height", type=int, default=480)
     s.add_argument("--style", choices=("outdoor", "indoor"), help="world style (default: from the trajectory)")
     s.add_argument("--depth-scale", type=float, default=5000.0, help="depth PNG units per metre (TUM: 5000)")
+    s.add_argument("--texture", choices=("aperiodic", "periodic"), default="aperiodic",
+                   help="surface texture: aperiodic (default; needed by feature matching, e.g. --backbone colmap) or "
+                        "periodic (a 16 m tile, as the loop benchmarks render)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_synth)
     r = sub.add_parser("run", help="run the system on an input and write trajectories and a report")
@@ -401,8 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--overlap", type=int, default=0,
                    help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
                         "max(2, min(4, w/4)) for colmap)")
-    r.add_argument("--deterministic", action="store_true",
-                   help="colmap: run its mapper on one thread so that repeated runs are bit-identical (slower)")
+    r.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                   help="colmap: every step on one thread, so that the same input and --seed give bit-identical "
+                        "trajectories (default); --no-deterministic runs the mapper multi-threaded (~25 %% faster)")
     r.add_argument("--tau", type=float, default=40.0, help="keyframe LK disparity threshold, px (default 40)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--no-save-predictions", action="store_true", help="do not write predictions/")
@@ -418,7 +423,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--sequence", action="append", default=[],
                    help="frontend: only this sequence (repeatable): euroc_uncalibrated, euroc_calibrated, castle, "
                         "rendered")
-    b.add_argument("--deterministic", action="store_true", help="frontend: colmap's mapper on one thread")
+    b.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+                   help="frontend: colmap on one thread (default; bit-identical runs per seed)")
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],

@@ -33,7 +33,14 @@ from vggt_slam_pp.errors import FrontendError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.filtering import FilterConfig, filter_points
 from vggt_slam_pp.frontend.keyframes import KeyframeConfig, KeyframeDecision, KeyframeSelector
-from vggt_slam_pp.frontend.odometry import OdometryConfig, chain, estimate_edge, linkable, with_cause
+from vggt_slam_pp.frontend.odometry import (
+    OdometryConfig,
+    chain,
+    estimate_edge,
+    link_problem,
+    overlap_disagreement,
+    with_cause,
+)
 from vggt_slam_pp.frontend.types import OdometryEdge, Submap, SubmapPrediction
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -193,8 +200,9 @@ class Frontend:
                         sid, carry[0].index, carry[-1].index)
         pred = self._filtered(raw)
         note = ""
-        if prev is not None and not linkable(prev.prediction, pred, self.config.odometry):
-            pred, frames, note = self._bridge(sid, prev, pred, frames)
+        problem = link_problem(prev.prediction, pred, self.config.odometry) if prev is not None else ""
+        if problem:
+            pred, frames, note = self._bridge(sid, prev, pred, frames, problem)
         if pred.num_points() == 0:
             log.warning("submap %d: no points left after filtering", sid)
         submap = Submap(sid, np.array([f.index for f in frames]), np.array([f.timestamp for f in frames]),
@@ -212,7 +220,7 @@ class Frontend:
                  pred.num_points())
         return submap
 
-    def _bridge(self, sid: int, prev: Submap, pred: SubmapPrediction, frames: list[Frame]
+    def _bridge(self, sid: int, prev: Submap, pred: SubmapPrediction, frames: list[Frame], problem: str
                 ) -> tuple[SubmapPrediction, list[Frame], str]:
         """Reconstruct the submap again with up to ``bridge_frames`` more registered keyframes of the
         previous submap in front; returns the better linked result and a note for the edge's cause."""
@@ -221,13 +229,16 @@ class Frontend:
         extra = [f for f in self._last_frames if f.index in valid and f.index not in have][-self.bridge_frames:]
         if not extra:
             return pred, frames, ""
-        log.warning("submap %d is not linked to submap %d by its overlap frames; reconstructing it again with "
-                    "%d more keyframes of submap %d", sid, sid - 1, len(extra), sid - 1)
+        log.warning("submap %d is not soundly linked to submap %d (%s); reconstructing it again with %d more "
+                    "keyframes of submap %d", sid, sid - 1, problem, len(extra), sid - 1)
         bridged = extra + frames
-        raw = self._predict(sid, bridged)
-        candidate = self._filtered(raw)
-        if linkable(prev.prediction, candidate, self.config.odometry):
-            return candidate, bridged, f"bridged: reconstructed again with {len(extra)} more keyframes of submap {sid - 1}"
+        candidate = self._filtered(self._predict(sid, bridged))
+        if not link_problem(prev.prediction, candidate, self.config.odometry):
+            return candidate, bridged, (f"bridged: reconstructed again with {len(extra)} more keyframes of "
+                                        f"submap {sid - 1} ({problem})")
+        before = overlap_disagreement(prev.prediction, pred)
+        if overlap_disagreement(prev.prediction, candidate) < before:  # NaN compares False: keep the first
+            pred, frames = candidate, bridged
         return pred, frames, f"bridge with {len(extra)} more keyframes of submap {sid - 1} failed"
 
 

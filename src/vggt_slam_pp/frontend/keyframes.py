@@ -2,7 +2,10 @@
 
 A frame becomes a keyframe when the mean displacement of corners tracked from the last keyframe
 exceeds ``tau_disparity`` pixels (original resolution), or when fewer than ``min_tracked`` corners
-survive tracking (textureless or blurred frames, cuts). The first frame is always a keyframe.
+survive tracking (textureless or blurred frames, cuts), or when fewer than ``min_track_ratio`` (25 %)
+of the reference's corners still track: forward motion (driving, walking down a street) zooms the view
+while the mean flow stays small, and without this rule keyframes there were 7-10 m apart on a rendered
+street, too far for structure-from-motion (docs/frontend.md). The first frame is always a keyframe.
 Corners: Shi-Tomasi, up to 1000, quality 0.01, min distance 8; pyramidal LK 21x21, 3 levels.
 The disparity is the mean over the corners LK reports found (as in the paper). Whether tracking is
 lost is decided on corners that also pass a forward-backward check (tracked back to within
@@ -30,6 +33,8 @@ class KeyframeConfig:
     lk_levels: int = 3
     min_tracked: int = 10
     max_fb_error: float = 1.0
+    min_track_ratio: float = 0.25  # keyframe when fewer than this fraction of the reference's corners track
+    # (0 = off; forward motion zooms the view while the mean flow stays small, see docs/frontend.md)
 
 
 @dataclass(frozen=True)
@@ -86,4 +91,7 @@ class KeyframeSelector:
         if disparity > c.tau_disparity:
             self._set_reference(gray)
             return KeyframeDecision(True, disparity, tracked, "disparity")
+        if c.min_track_ratio > 0 and tracked < c.min_track_ratio * len(self._ref_pts):
+            self._set_reference(gray)
+            return KeyframeDecision(True, disparity, tracked, "tracks-fading")
         return KeyframeDecision(False, disparity, tracked, "")

@@ -42,6 +42,7 @@ class OdometryConfig:
     relative_threshold: float = 0.02  # RANSAC inlier threshold relative to the points' spread
     max_correspondences: int = 20000  # random subset for speed (seeded)
     min_correspondences: int = 20
+    max_disagreement_deg: float = 1.0  # shared keyframes' relative rotations must agree to this
     seed: int = 0
 
 
@@ -89,27 +90,65 @@ def estimate_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: Subm
     n = int(sum(len(s.p_prev) for s in shared))
     if n < c.min_correspondences:
         return extrapolated_edge(prev_id, prev, curr_id, curr, _link_cause(prev, curr, n), n)
+    disagreement = link_problem(prev, curr, c)
     try:
-        if method == "points":
-            p_prev = np.concatenate([s.p_prev for s in shared])
-            p_curr = np.concatenate([s.p_curr for s in shared])
-            if n > c.max_correspondences:
-                pick = np.random.default_rng(c.seed).choice(n, c.max_correspondences, replace=False)
-                p_prev, p_curr = p_prev[pick], p_curr[pick]
-            fit = estimate_sim3_robust(p_curr, p_prev, relative_threshold=c.relative_threshold, seed=c.seed)
-            return OdometryEdge(prev_id, curr_id, fit.T_dst_src, fit.rmse, fit.inlier_ratio, n, "points",
-                                shared_frames=len(shared))
-        if method == "pose_scale":
-            return _pose_scale(prev_id, prev, curr_id, curr, shared, n)
+        edge = _fit(prev_id, prev, curr_id, curr, shared, n, method, c)
     except GeometryError as exc:
         return extrapolated_edge(prev_id, prev, curr_id, curr, str(exc), n)
+    if disagreement:
+        log.warning("odometry %d -> %d degraded: %s", prev_id, curr_id, disagreement)
+        return replace(edge, degraded=True, cause=disagreement)
+    return edge
+
+
+def _fit(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int, method: str,
+         c: OdometryConfig) -> OdometryEdge:
+    if method == "points":
+        p_prev = np.concatenate([s.p_prev for s in shared])
+        p_curr = np.concatenate([s.p_curr for s in shared])
+        if n > c.max_correspondences:
+            pick = np.random.default_rng(c.seed).choice(n, c.max_correspondences, replace=False)
+            p_prev, p_curr = p_prev[pick], p_curr[pick]
+        fit = estimate_sim3_robust(p_curr, p_prev, relative_threshold=c.relative_threshold, seed=c.seed)
+        return OdometryEdge(prev_id, curr_id, fit.T_dst_src, fit.rmse, fit.inlier_ratio, n, "points",
+                            shared_frames=len(shared))
+    anchor = set(curr.info.get("anchor_frames", []))
+    if method == "pose_scale" and len(shared) >= 2 and \
+            all(int(prev.frame_indices[f.prev_pos]) in anchor for f in shared):
+        return _anchored(prev_id, prev, curr_id, curr, shared, n)
+    if method == "pose_scale":
+        return _pose_scale(prev_id, prev, curr_id, curr, shared, n)
     raise GeometryError(f"unknown odometry method {method!r}")
 
 
-def linkable(prev: SubmapPrediction, curr: SubmapPrediction, config: OdometryConfig | None = None) -> bool:
-    """Whether :func:`estimate_edge` would find enough correspondences (not degrade for lack of them)."""
+def link_problem(prev: SubmapPrediction, curr: SubmapPrediction, config: OdometryConfig | None = None) -> str:
+    """Why the shared keyframes cannot link the two submaps soundly ("" when they can): too few
+    correspondences, or reconstructions that disagree on the shared keyframes' relative rotations."""
     c = config or OdometryConfig()
-    return sum(len(s.p_prev) for s in shared_frames(prev, curr)) >= c.min_correspondences
+    n = sum(len(s.p_prev) for s in shared_frames(prev, curr))
+    if n < c.min_correspondences:
+        return _link_cause(prev, curr, n)
+    worst = overlap_disagreement(prev, curr)
+    if worst > c.max_disagreement_deg:
+        return f"the submaps disagree by {worst:.1f} deg on the overlap keyframes' relative rotation"
+    return ""
+
+
+def overlap_disagreement(prev: SubmapPrediction, curr: SubmapPrediction) -> float:
+    """Largest disagreement (degrees) between the two submaps on the relative rotation of a pair of
+    shared keyframes; NaN with fewer than two shared keyframes. Two sound reconstructions agree to a
+    fraction of a degree (0.01-0.06 deg measured); a broken one (a wrong initial pair, a turn folded
+    onto itself) disagrees by degrees while every frame still counts as registered."""
+    shared = shared_frames(prev, curr)
+    worst = float("nan")
+    for a in range(len(shared)):
+        for b in range(a + 1, len(shared)):
+            Rp = prev.T_cam_submap[shared[a].prev_pos][:3, :3] @ prev.T_cam_submap[shared[b].prev_pos][:3, :3].T
+            Rc = curr.T_cam_submap[shared[a].curr_pos][:3, :3] @ curr.T_cam_submap[shared[b].curr_pos][:3, :3].T
+            Rp, Rc = Rp / np.cbrt(np.linalg.det(Rp)), Rc / np.cbrt(np.linalg.det(Rc))
+            cos = np.clip((np.trace(Rp @ Rc.T) - 1) / 2, -1.0, 1.0)
+            worst = float(np.nanmax([worst, np.degrees(np.arccos(cos))]))
+    return worst
 
 
 def _link_cause(prev: SubmapPrediction, curr: SubmapPrediction, n: int) -> str:
@@ -155,6 +194,24 @@ def _pose_scale(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int)
     inl = np.abs(np.log(ratios / s)) < 0.05
     resid = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan")
     return OdometryEdge(prev_id, curr_id, T, resid, float(inl.mean()), n, "pose_scale", shared_frames=len(Rs))
+
+
+def _anchored(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int) -> OdometryEdge:
+    """The current submap was reconstructed with the shared keyframes' poses held fixed from the
+    previous one (``info["anchor_frames"]``): the Sim(3) that maps the shared cameras onto each other
+    (Umeyama on the camera centres, rotation from the poses) is exact up to rounding."""
+    c_prev = np.array([sim3_inverse(prev.T_cam_submap[f.prev_pos])[:3, 3] for f in shared])
+    c_curr = np.array([sim3_inverse(curr.T_cam_submap[f.curr_pos])[:3, 3] for f in shared])
+    spread_curr = np.sqrt(((c_curr - c_curr.mean(0)) ** 2).sum())
+    if spread_curr <= 1e-9:
+        raise GeometryError("anchored keyframes coincide")
+    s = float(np.sqrt(((c_prev - c_prev.mean(0)) ** 2).sum()) / spread_curr)
+    R = _mean_rotation(np.array([prev.T_cam_submap[f.prev_pos][:3, :3].T @ curr.T_cam_submap[f.curr_pos][:3, :3]
+                                 for f in shared]))
+    t = np.mean(c_prev - s * c_curr @ R.T, axis=0)
+    T = make_sim3(s, R, t)
+    resid = float(np.sqrt(np.mean(np.sum((c_prev - (s * c_curr @ R.T + t)) ** 2, axis=1))))
+    return OdometryEdge(prev_id, curr_id, T, resid, 1.0, n, "anchored", shared_frames=len(shared))
 
 
 def _median_depth(pred: SubmapPrediction, positions) -> float:

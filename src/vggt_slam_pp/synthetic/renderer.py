@@ -85,10 +85,15 @@ class Renderer:
         max_depth: surfaces beyond this distance (world units) are not drawn.
         texels_per_unit: texture resolution on surfaces (texels per world unit).
         texture_seed: seed of the procedural texture.
+        aperiodic: break the texture's repetition (one 1024-texel tile every 16 m outdoors): each
+            tile-sized cell of a surface gets a pseudo-random offset and a second texture layer at an
+            incommensurate scale and angle is blended in. A repeating ground seen at several distances
+            gives scale-invariant features (SIFT) false matches; with it, COLMAP folded a rendered corner
+            (docs/experiments.md). Default off: the loop-closure benchmarks were measured without it.
     """
 
     def __init__(self, world: World, camera: PinholeCamera, max_depth: float = 80.0,
-                 texels_per_unit: float | None = None, texture_seed: int = 7) -> None:
+                 texels_per_unit: float | None = None, texture_seed: int = 7, aperiodic: bool = False) -> None:
         if max_depth <= _NEAR:
             raise SyntheticError(f"max_depth must exceed {_NEAR}")
         self.world = world
@@ -96,6 +101,8 @@ class Renderer:
         self.max_depth = float(max_depth)
         self.tpu = float(texels_per_unit or (64.0 if world.style == "outdoor" else 256.0))
         self.pyramid = make_texture(seed=texture_seed)
+        self.aperiodic = aperiodic
+        self._texture_seed = texture_seed
         H, W = camera.height, camera.width
         v, u = np.mgrid[0:H, 0:W].astype(np.float64)
         self._rays_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], -1)
@@ -111,6 +118,42 @@ class Renderer:
         self._tex_off = np.array([s.texture_offset for s in solids]).reshape(-1, 2)
         sun = np.array([0.4, -0.3, 0.85])
         self._sun = sun / np.linalg.norm(sun)
+
+    def _sample(self, tu: np.ndarray, tv: np.ndarray, level: np.ndarray) -> np.ndarray:
+        """Trilinear texture lookup at surface coordinates (tu, tv) (world units) and mip ``level``."""
+        level = np.clip(level, 0, len(self.pyramid) - 1)
+        tex = np.zeros(tu.shape, np.float32)
+        lo = np.floor(level).astype(int)
+        frac = (level - lo).astype(np.float32)
+        mu = (tu * self.tpu).astype(np.float32)
+        mv = (tv * self.tpu).astype(np.float32)
+        for lev in range(len(self.pyramid)):
+            use = (lo == lev) | (lo + 1 == lev)
+            if not use.any():
+                continue
+            scale = np.float32(2.0**-lev)
+            img = self.pyramid[lev]
+            # wrap texture coordinates into range so remap's float maps stay precise
+            size = np.float32(img.shape[0])
+            su = np.mod(mu * scale, size)
+            sv = np.mod(mv * scale, size)
+            sample = cv2.remap(img, su, sv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            wgt = np.where(lo == lev, 1.0 - frac, np.where(lo + 1 == lev, frac, 0.0)).astype(np.float32)
+            tex += wgt * sample
+        return tex
+
+    def _scatter_tiles(self, tu: np.ndarray, tv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Shift the texture by a pseudo-random offset per texture-sized cell of the surface, so that the
+        pattern does not repeat every tile (a repeating ground seen at several distances gives
+        scale-invariant features false matches)."""
+        period = self.pyramid[0].shape[0] / self.tpu
+        cu = np.floor(tu / period).astype(np.int64)
+        cv = np.floor(tv / period).astype(np.int64)
+        h = (cu * 73856093) ^ (cv * 19349663) ^ (self._texture_seed * 83492791)
+        h = (h * 2654435761) % (1 << 32)
+        ou = (h & 0xFFFF) / 65536.0 * period
+        ov = ((h >> 16) & 0xFFFF) / 65536.0 * period
+        return tu + ou, tv + ov
 
     def _visible_solids(self, T_world_cam: np.ndarray) -> list[tuple[int, slice, slice]]:
         """Solids that may be visible and the pixel window their bounding box covers."""
@@ -222,24 +265,16 @@ class Renderer:
         cosang = np.abs(np.sum(normal * d, axis=-1)) / dnorm
         footprint = self.tpu * dep * dnorm / self.camera.fx / np.sqrt(np.clip(cosang, 0.05, 1.0))
         level = np.clip(np.log2(np.maximum(footprint, 1e-6)), 0, len(self.pyramid) - 1)
-        tex = np.zeros((H, W), np.float32)
-        lo = np.floor(level).astype(int)
-        frac = (level - lo).astype(np.float32)
-        mu = (tu * self.tpu).astype(np.float32)
-        mv = (tv * self.tpu).astype(np.float32)
-        for lev in range(len(self.pyramid)):
-            use = (lo == lev) | (lo + 1 == lev)
-            if not use.any():
-                continue
-            scale = np.float32(2.0**-lev)
-            img = self.pyramid[lev]
-            # wrap texture coordinates into range so remap's float maps stay precise
-            size = np.float32(img.shape[0])
-            su = np.mod(mu * scale, size)
-            sv = np.mod(mv * scale, size)
-            sample = cv2.remap(img, su, sv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-            wgt = np.where(lo == lev, 1.0 - frac, np.where(lo + 1 == lev, frac, 0.0)).astype(np.float32)
-            tex += wgt * sample
+        if self.aperiodic:
+            tu, tv = self._scatter_tiles(tu, tv)
+            # a second layer at an incommensurate scale and angle: the local pattern no longer repeats
+            # (one texture, however shifted per cell, shows every patch once per cell)
+            c, s_ = np.cos(1.1), np.sin(1.1)
+            tex = 0.6 * self._sample(tu, tv, level) + 0.4 * self._sample(
+                (c * tu - s_ * tv) * 0.618 + 3.7, (s_ * tu + c * tv) * 0.618 + 1.3, level - np.log2(1 / 0.618))
+            tex = (tex - 0.5) * 1.25 + 0.5  # the blend's contrast back to one layer's
+        else:
+            tex = self._sample(tu, tv, level)
         shade = 0.45 + 0.55 * np.clip(normal @ self._sun, 0.0, 1.0)
         rgb = albedo * (0.12 + 0.88 * tex[..., None]) * shade[..., None]
         # sky: vertical gradient by the ray's elevation

@@ -85,8 +85,12 @@ def write_sequence(
     depth_scale: float = 5000.0,
     max_depth: float | None = None,
     progress: Callable[[int, int], None] | None = None,
+    aperiodic: bool = False,
 ) -> dict:
     """Render every pose of ``scene`` and write the TUM RGB-D layout into ``out``.
+
+    ``aperiodic``: a texture that does not repeat (see :class:`Renderer`); the periodic default keeps the
+    images that the loop-closure benchmarks were measured on.
 
     Returns:
         a summary: frames, seconds spent rendering and writing, seconds per frame.
@@ -95,7 +99,7 @@ def write_sequence(
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     max_depth = max_depth or (80.0 if scene.world.style == "outdoor" else 15.0)
-    renderer = Renderer(scene.world, scene.camera, max_depth=max_depth)
+    renderer = Renderer(scene.world, scene.camera, max_depth=max_depth, aperiodic=aperiodic)
     traj = scene.trajectory
     rgb_lines = ["# color images", "# timestamp filename"]
     depth_lines = ["# depth maps", "# timestamp filename"]

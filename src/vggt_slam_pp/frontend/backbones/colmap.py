@@ -29,9 +29,9 @@ registered neighbour's pose (the front-end splits them off or bridges, see ``fro
 submap that cannot be reconstructed at all is returned with every frame invalid (identity poses, no
 points).
 
-Determinism: feature extraction and matching run on one thread (their multi-threaded RANSAC draws
-depend on the thread schedule), the mapper uses ``random_seed`` = the run's seed plus the attempt;
-``deterministic`` also runs the mapper on one thread (docs/frontend.md gives the measured cost).
+Determinism: feature extraction and matching run on one thread, and so does the mapper unless
+``deterministic=False`` (multi-threaded, repeated runs of one submap differed by up to 8 cm); the
+mapper's ``random_seed`` is the run's seed plus the attempt. docs/frontend.md gives the measured cost.
 
 Estimated intrinsics must be physically sensible (``intrinsics_sane``: focal 0.3-4x the image's larger
 side, aspect within 10 %, principal point in the middle 40 %, |k1|, |k2| < 1, |p1|, |p2| < 0.05);
@@ -60,9 +60,12 @@ log = logging.getLogger(__name__)
 ATTEMPTS = ((16.0, 0), (4.0, 0), (16.0, 1), (2.0, 0), (8.0, 2))
 
 
-def intrinsics_sane(params, width: int, height: int) -> str:
-    """Why OPENCV ``params`` (fx, fy, cx, cy, k1, k2, p1, p2) are implausible for a ``width`` x
-    ``height`` image, or "" when they are sensible."""
+def intrinsics_sane(params, width: int, height: int, model: str = "OPENCV") -> str:
+    """Why ``params`` of an OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) or RADIAL (f, cx, cy, k1, k2) camera
+    are implausible for a ``width`` x ``height`` image, or "" when they are sensible."""
+    if model == "RADIAL":
+        f, cx, cy, k1, k2 = (float(v) for v in params)
+        params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
     fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in params)
     side = max(width, height)
     if not 0.3 * side <= fx <= 4 * side or not 0.3 * side <= fy <= 4 * side:
@@ -82,7 +85,9 @@ class ColmapBackbone(Backbone):
 
     def __init__(self, calibrated: bool = False, max_features: int = 4096, overlap: int = 10,
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
-                 freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = False) -> None:
+                 freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
+                 anchored: bool = True, max_image_size: int = 1600, refine_principal_point: bool = True,
+                 camera_model: str = "OPENCV") -> None:
         import pycolmap
 
         if not log.isEnabledFor(logging.DEBUG):  # COLMAP's own (glog) chatter only when debugging
@@ -97,6 +102,12 @@ class ColmapBackbone(Backbone):
         self.num_threads = num_threads
         self.seed = seed
         self.deterministic = deterministic
+        self.anchored = anchored
+        self.max_image_size = max_image_size
+        self.refine_principal_point = refine_principal_point
+        self.camera_model = camera_model
+        self._previous = None  # the last reconstruction (pycolmap), the anchor of the next submap
+        self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
         self._estimated: tuple[tuple[int, int], list[float]] | None = None  # (size, OPENCV params)
@@ -111,7 +122,7 @@ class ColmapBackbone(Backbone):
         import pycolmap
 
         reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "OPENCV"
+        reader.camera_model = "OPENCV" if self.calibrated and frame.intrinsics is not None else self.camera_model
         if self.calibrated and frame.intrinsics is not None:
             cam = frame.intrinsics
             dist = list(cam.dist[:4]) if cam.dist is not None else [0.0, 0.0, 0.0, 0.0]
@@ -127,7 +138,7 @@ class ColmapBackbone(Backbone):
 
         images = work / "images"
         images.mkdir(parents=True)
-        names = [f"{i:04d}.png" for i in range(len(frames))]
+        names = [f"{f.index:08d}.png" for f in frames]  # by frame index: the same name in every submap
         for name, f in zip(names, frames, strict=True):
             cv2.imwrite(str(images / name), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
         db = work / "database.db"
@@ -135,6 +146,7 @@ class ColmapBackbone(Backbone):
         extraction.use_gpu = False
         extraction.num_threads = 1  # deterministic (module docstring)
         extraction.sift.max_num_features = self.max_features
+        extraction.max_image_size = self.max_image_size  # larger photos: SIFT on a downscaled copy
         pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=self._camera_options(frames[0]),
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
@@ -152,14 +164,23 @@ class ColmapBackbone(Backbone):
         given = self.calibrated and frames[0].intrinsics is not None
         best, attempt = None, 0
         refine = not (given or (self.freeze_estimated and self._estimated is not None))
+        self._anchor_names = []
+        if self.anchored and not refine:
+            best = self._map_anchored(db, images, work, names)
+            if best is not None and best.num_reg_images() == len(frames):
+                return best, names
+            if best is not None:
+                log.info("colmap: anchored mapping registered %d/%d images; mapping the submap on its own",
+                         best.num_reg_images(), len(frames))
+            best, self._anchor_names = None, []
         for angle, seed_offset in ATTEMPTS:
             rec = self._map(db, images, work / f"sparse{attempt}", angle, seed_offset, attempt, refine)
             attempt += 1
             if rec is not None and (best is None or rec.num_reg_images() > best.num_reg_images()):
                 best = rec
             registered = 0 if best is None else best.num_reg_images()
-            if registered == len(frames):
-                break
+            if registered == len(frames) or (attempt >= 2 and registered >= 0.9 * len(frames)):
+                break  # a few frames that two attempts could not register are left to the front-end
             log.info("colmap: %d/%d images registered (init angle %.0f deg, seed +%d); retrying",
                      registered, len(frames), angle, seed_offset)
         registered = 0 if best is None else best.num_reg_images()
@@ -172,9 +193,59 @@ class ColmapBackbone(Backbone):
                 self._adopt_camera(rec, len(frames), "re-estimated after a registration collapse")
         return best, names
 
-    def _map(self, db: Path, images: Path, out: Path, angle: float, seed_offset: int, attempt: int,
-             refine: bool):
-        """One incremental-mapping attempt; the reconstruction with most registered images, or None."""
+    def _map_anchored(self, db: Path, images: Path, work: Path, names: list[str]):
+        """Register the submap into an anchor made of the keyframes it shares with the previous
+        submap's reconstruction (their poses held fixed, with the 3-D points they observe), so that it
+        comes out in the previous submap's frame and scale. None when there is no usable anchor."""
+        import pycolmap
+
+        if self._previous is None:
+            return None
+        prev = self._previous
+        shared = [n for n in names if (im := prev.find_image_with_name(n)) is not None and im.has_pose]
+        if len(shared) < 2:
+            return None
+        database = pycolmap.Database.open(db)
+        try:
+            ids = {im.name: im.image_id for im in database.read_all_images()}
+            camera_id = database.read_all_cameras()[0].camera_id
+        finally:
+            database.close()
+        cam = next(iter(prev.cameras.values()))
+        anchor = pycolmap.Reconstruction()
+        anchor.add_camera_with_trivial_rig(pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height,
+                                                           params=cam.params, camera_id=camera_id))
+        new_id = {}
+        for n in shared:
+            im = prev.find_image_with_name(n)
+            keypoints = np.array([p.xy for p in im.points2D], dtype=np.float64).reshape(-1, 2)
+            anchor.add_image_with_trivial_frame(
+                pycolmap.Image(name=n, keypoints=keypoints, camera_id=camera_id, image_id=ids[n]), im.cam_from_world())
+            new_id[im.image_id] = ids[n]
+        for point in prev.points3D.values():
+            elements = [e for e in point.track.elements if e.image_id in new_id]
+            if len(elements) >= 2:
+                track = pycolmap.Track()
+                for e in elements:
+                    track.add_element(new_id[e.image_id], e.point2D_idx)
+                anchor.add_point3D(point.xyz, track, point.color)
+        if anchor.num_points3D() < 20:
+            return None
+        self._anchor_names = shared
+        (work / "anchor").mkdir()
+        anchor.write(work / "anchor")
+        opts = self._options(ATTEMPTS[0][0], 0, 0, refine=False)
+        opts.fix_existing_frames = True
+        out = work / "sparse_anchored"
+        out.mkdir()
+        try:
+            recs = pycolmap.incremental_mapping(db, images, out, options=opts, input_path=work / "anchor")
+        except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+            log.warning("colmap anchored mapping failed: %s", exc)
+            return None
+        return max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+
+    def _options(self, angle: float, seed_offset: int, attempt: int, refine: bool):
         import pycolmap
 
         opts = pycolmap.IncrementalPipelineOptions()
@@ -189,6 +260,16 @@ class ColmapBackbone(Backbone):
             opts.ba_refine_focal_length = False
             opts.ba_refine_principal_point = False
             opts.ba_refine_extra_params = False
+        elif self.refine_principal_point:
+            opts.ba_refine_principal_point = True
+        return opts
+
+    def _map(self, db: Path, images: Path, out: Path, angle: float, seed_offset: int, attempt: int,
+             refine: bool):
+        """One incremental-mapping attempt; the reconstruction with most registered images, or None."""
+        import pycolmap
+
+        opts = self._options(angle, seed_offset, attempt, refine)
         out.mkdir()
         try:
             recs = pycolmap.incremental_mapping(db, images, out, options=opts)
@@ -201,7 +282,7 @@ class ColmapBackbone(Backbone):
         """Hold ``rec``'s estimated camera for the rest of the sequence when it is sensible."""
         cam = next(iter(rec.cameras.values()))
         params = [float(v) for v in cam.params]
-        why = intrinsics_sane(params, int(cam.width), int(cam.height))
+        why = intrinsics_sane(params, int(cam.width), int(cam.height), cam.model.name)
         history = self.camera.get("history", [])
         history.append({"keyframes": list(self._span), "params": params, "registered": rec.num_reg_images(),
                         "frames": S, "adopted": not why, "reason": why or source})
@@ -210,7 +291,7 @@ class ColmapBackbone(Backbone):
             self.camera = {**self.camera, "history": history}
             return
         self._estimated = ((int(cam.width), int(cam.height)), params)
-        self.camera = {"model": "OPENCV", "params": params, "width": int(cam.width), "height": int(cam.height),
+        self.camera = {"model": cam.model.name, "params": params, "width": int(cam.width), "height": int(cam.height),
                        "source": source, "history": history}
         log.info("colmap: camera %s (fx fy cx cy k1 k2 p1 p2) %s", source, " ".join(f"{v:.4g}" for v in params))
 
@@ -222,7 +303,10 @@ class ColmapBackbone(Backbone):
         self._span = (int(frames[0].index), int(frames[-1].index))
         try:
             rec, names = self._reconstruct(work, frames) if S >= 2 else (None, [])
-            return self._to_prediction(rec, names, frames)
+            pred = self._to_prediction(rec, names, frames)
+            if rec is not None and pred.valid.sum() >= 2:
+                self._previous = rec
+            return pred
         finally:
             if self.keep_workdir is not None:
                 shutil.copytree(work, self.keep_workdir / f"submap_{self._count:05d}", dirs_exist_ok=True)
@@ -296,6 +380,8 @@ class ColmapBackbone(Backbone):
         registered = int(valid.sum())
         if registered < S:
             log.warning("colmap: %d of %d frames registered in submap %d..%d", registered, S, indices[0], indices[-1])
+        anchor = [int(n[:-4]) for n in self._anchor_names]
         return SubmapPrediction(indices, T_cam_submap, Ks, (h, w), eye, pts, conf, pix, keys, valid, dense=False,
                                 info={"registered": registered, "points3D": rec.num_points3D(),
-                                      "mean_reprojection_error": rec.compute_mean_reprojection_error()})
+                                      "mean_reprojection_error": rec.compute_mean_reprojection_error(),
+                                      **({"anchor_frames": anchor} if anchor else {})})

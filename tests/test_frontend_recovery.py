@@ -120,3 +120,51 @@ def test_implausible_estimated_intrinsics_are_refused():
     assert "focal" in intrinsics_sane([100, 100, 376, 240, 0, 0, 0, 0], 752, 480)
     assert "principal point" in intrinsics_sane([460, 460, 30, 240, 0, 0, 0, 0], 752, 480)
     assert "distortion" in intrinsics_sane([460, 460, 376, 240, -1.5, 0, 0, 0], 752, 480)
+
+
+def _pair(rng, n_frames=4, shared=2, T_prev_curr=None):
+    """prev holds frames 0..n-1, curr frames n-shared..; curr's frame is prev's mapped by T_prev_curr."""
+    from vggt_slam_pp.frontend.types import SubmapPrediction
+    from vggt_slam_pp.geometry import se3_exp, sim3_inverse
+    from vggt_slam_pp.geometry.lie import transform_points
+
+    world = rng.uniform([-5, -3, 4], [5, 3, 15], (300, 3))
+    T_cam_prev = np.array([se3_exp(np.r_[0.02 * k, -0.01 * k, 0.03 * k, 0.3 * k, 0.05 * k, 0.2 * k])
+                           for k in range(n_frames)])
+    T_pc = np.eye(4) if T_prev_curr is None else T_prev_curr
+
+    def pred(frames, T_cam_sub, pts):
+        S = len(frames)
+        return SubmapPrediction(np.array(frames), T_cam_sub, np.repeat(np.eye(3)[None], S, 0), (4, 4),
+                                np.repeat(np.eye(3)[None], S, 0), [pts] * S, [np.ones(len(pts), np.float32)] * S,
+                                [np.zeros((len(pts), 2), np.float32)] * S, [np.arange(len(pts))] * S,
+                                np.ones(S, bool), dense=False)
+
+    prev = pred(list(range(n_frames)), T_cam_prev, world)
+    first = n_frames - shared
+    frames = list(range(first, first + n_frames))
+    # curr's poses: the same cameras seen from the curr frame (T_cam_curr = T_cam_prev . T_prev_curr)
+    T_cam_curr = np.array([T_cam_prev[min(k, n_frames - 1)] @ T_pc for k in frames])
+    curr = pred(frames, T_cam_curr, transform_points(sim3_inverse(T_pc), world))
+    return prev, curr
+
+
+def test_anchored_edge_is_exact_and_disagreeing_overlaps_are_flagged(rng):
+    from vggt_slam_pp.frontend.odometry import estimate_edge, overlap_disagreement
+    from vggt_slam_pp.geometry import make_sim3, so3_exp
+
+    T = make_sim3(1.7, so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, -2.0, 0.5]))
+    prev, curr = _pair(rng, T_prev_curr=T)
+    assert overlap_disagreement(prev, curr) < 1e-6
+    anchored = dataclasses.replace(curr, info={"anchor_frames": [2, 3]})
+    edge = estimate_edge(0, prev, 1, anchored)
+    assert edge.method == "anchored" and edge.shared_frames == 2 and not edge.degraded
+    assert np.allclose(edge.T_prev_curr, T, atol=1e-9)
+    assert estimate_edge(0, prev, 1, curr).method == "pose_scale"
+    # one shared keyframe's orientation 5 deg off in the current submap: flagged, with the reason
+    bent = curr.T_cam_submap.copy()
+    bent[1, :3, :3] = so3_exp(np.array([0.0, np.radians(5.0), 0.0])) @ bent[1, :3, :3]
+    broken = dataclasses.replace(curr, T_cam_submap=bent)
+    assert 4.9 < overlap_disagreement(prev, broken) < 5.1
+    edge = estimate_edge(0, prev, 1, broken)
+    assert edge.degraded and "disagree by 5.0 deg" in edge.cause

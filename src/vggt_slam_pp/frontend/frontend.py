@@ -213,6 +213,7 @@ class Frontend:
             self.edges.append(with_cause(edge, note) if note else edge)
             self.timings["odometry_s"] += time.perf_counter() - t
         self.submaps.append(submap)
+        self.backbone.committed(submap.frame_indices)
         self._last_frames = frames
         registered = [f for f, v in zip(frames, pred.valid, strict=True) if v]
         self.assembler.settle(frames, registered[-self.overlap:], carry)

@@ -25,6 +25,10 @@ class Backbone(ABC):
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         """``frames`` (S >= 1 keyframes, in order) -> prediction for those frames."""
 
+    def committed(self, frame_indices: Sequence[int]) -> None:  # noqa: B027 - optional hook
+        """The front-end kept the prediction whose keyframes start with ``frame_indices`` as a submap
+        (a backbone that builds on the previous submap, like anchored COLMAP, remembers that one)."""
+
     def describe(self) -> dict:
         """What the backbone estimated for the whole run, for the report (e.g. the shared camera)."""
         return {}

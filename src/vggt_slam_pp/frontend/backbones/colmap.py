@@ -87,7 +87,7 @@ class ColmapBackbone(Backbone):
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
                  freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
                  anchored: bool = True, max_image_size: int = 1600, refine_principal_point: bool = True,
-                 camera_model: str = "OPENCV") -> None:
+                 camera_model: str = "OPENCV", fix_anchor: bool = True) -> None:
         import pycolmap
 
         if not log.isEnabledFor(logging.DEBUG):  # COLMAP's own (glog) chatter only when debugging
@@ -106,13 +106,23 @@ class ColmapBackbone(Backbone):
         self.max_image_size = max_image_size
         self.refine_principal_point = refine_principal_point
         self.camera_model = camera_model
-        self._previous = None  # the last reconstruction (pycolmap), the anchor of the next submap
+        self.fix_anchor = fix_anchor
+        self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
+        self._pending: list[tuple[tuple[int, ...], object]] = []  # this submap's attempts: (frames, rec)
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
         self._estimated: tuple[tuple[int, int], list[float]] | None = None  # (size, OPENCV params)
         self.camera: dict = {}  # the shared camera for the report: model, params, source, history
         self._span = (0, 0)  # first and last frame index of the submap being reconstructed
+
+    def committed(self, frame_indices) -> None:
+        kept = tuple(int(i) for i in frame_indices)
+        for frames, rec in reversed(self._pending):
+            if frames[:len(kept)] == kept:
+                self._previous = rec
+                break
+        self._pending = []
 
     def describe(self) -> dict:
         return {"camera": dict(self.camera)} if self.camera else {}
@@ -235,7 +245,7 @@ class ColmapBackbone(Backbone):
         (work / "anchor").mkdir()
         anchor.write(work / "anchor")
         opts = self._options(ATTEMPTS[0][0], 0, 0, refine=False)
-        opts.fix_existing_frames = True
+        opts.fix_existing_frames = self.fix_anchor
         out = work / "sparse_anchored"
         out.mkdir()
         try:
@@ -305,7 +315,7 @@ class ColmapBackbone(Backbone):
             rec, names = self._reconstruct(work, frames) if S >= 2 else (None, [])
             pred = self._to_prediction(rec, names, frames)
             if rec is not None and pred.valid.sum() >= 2:
-                self._previous = rec
+                self._pending.append((tuple(int(f.index) for f in frames), rec))
             return pred
         finally:
             if self.keep_workdir is not None:

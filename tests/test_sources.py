@@ -279,8 +279,8 @@ def test_kitti_root_is_refused_with_its_sequences(tmp_path, rng):
     root = tmp_path / "dataset"
     _make_kitti_root(root, rng)
     for path in (root, root / "sequences"):
-        for call in (lambda: open_source(path), lambda: detect_layout(path),
-                     lambda: open_source(path, layout="kitti")):
+        for call in (lambda p=path: open_source(p), lambda p=path: detect_layout(p),
+                     lambda p=path: open_source(p, layout="kitti")):
             with pytest.raises(InputError) as info:
                 call()
             msg = str(info.value)

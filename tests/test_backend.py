@@ -298,3 +298,29 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
         queries = base["submaps"] - 1 - recent  # submaps with an earlier submap outside the recent ones
         assert len(injected) == int(queries * rate) >= 1
         assert abs(faulty["ate_rmse"] - base["ate_rmse"]) < 0.1 * base["ate_rmse"], rate
+
+
+def test_backbones_without_metric_scale_get_an_auto_dem_tile(rng):
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone
+    from vggt_slam_pp.pipeline import _scale_aware
+    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
+    from vggt_slam_pp.retrieval.encoders import make_encoder
+
+    class _Unitless(SimulatedBackbone):
+        metric = False
+
+    assert _scale_aware(BackendConfig(), SimulatedBackbone({})).covisibility.dem.tile_size == 2.0
+    auto = _scale_aware(BackendConfig(), _Unitless({}))
+    assert auto.covisibility.dem.tile_size == "auto"
+    # the grid's tile is then a quarter of the first submap's median camera-to-point distance, whatever the units
+    for units in (1.0, 0.05):
+        stage = CovisibilityStage(make_encoder("hog"), auto.covisibility)
+        ground = np.c_[rng.uniform(-20, 20, (4000, 2)), np.zeros(4000)] * units
+        cams = np.array([[0.0, 0.0, 1.6], [2.0, 0.0, 1.6]]) * units
+        stage._ensure_grid(ground, cams, None)
+        from scipy.spatial import cKDTree
+
+        expected = 0.25 * np.median(cKDTree(cams).query(ground)[0])
+        assert np.isclose(stage.grid.tile_size, expected)
+    assert CovisibilityConfig().dem.tile_size == 2.0

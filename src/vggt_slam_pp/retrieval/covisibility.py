@@ -96,6 +96,11 @@ class CovisibilityStage:
                      median_depth: float | None) -> None:
         if self.grid is None:
             plane = fit_ground_plane(points_world, camera_centers)
+            if median_depth is None and self.config.dem.tile_size == "auto" and camera_centers is not None \
+                    and len(camera_centers) and len(points_world):
+                from scipy.spatial import cKDTree
+
+                median_depth = float(np.median(cKDTree(camera_centers).query(points_world)[0]))
             self.grid = DemGrid.create(plane, self.config.dem, median_depth)
             cells_per_tile = self.grid.tile_px / self.encoder.patch_px
             if cells_per_tile != int(cells_per_tile):

@@ -20,6 +20,7 @@ class Backbone(ABC):
 
     name: str = "backbone"
     dense: bool = True
+    metric: bool = False  # predictions in metres (the back-end's DEM tile is then 2 m, else "auto")
 
     @abstractmethod
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:

@@ -103,6 +103,7 @@ class ReplayBackbone(Backbone):
                 self._by_frames[tuple(int(i) for i in f.get_tensor("frame_indices"))] = p
         first = load_prediction(files[0])
         self.dense = first.dense
+        self.metric = bool(first.info.get("metric", False))
 
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         key = tuple(int(f.index) for f in frames)

@@ -52,6 +52,7 @@ class SimulatedBackbone(Backbone):
 
     name = "simulated"
     dense = True
+    metric = True  # ground truth in metres (up to the per-submap scale error)
 
     def __init__(self, gt_poses: Mapping[int, np.ndarray], noise: SimulatedNoise | None = None,
                  stride: int = 4) -> None:
@@ -99,4 +100,4 @@ class SimulatedBackbone(Backbone):
         h, w_ = frames[0].depth.shape
         return SubmapPrediction(np.array([f.index for f in frames]), T_cam_submap, Ks, (h, w_),
                                 np.repeat(np.eye(3)[None], S, 0), pts, conf, pix, keys, np.ones(S, bool),
-                                dense=True, info={"scale_error": scale})
+                                dense=True, info={"scale_error": scale, "metric": True})

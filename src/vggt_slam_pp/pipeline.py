@@ -36,8 +36,8 @@ import numpy as np
 from vggt_slam_pp import __version__
 from vggt_slam_pp.backend.backend import BackendConfig, BackendResult, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
-from vggt_slam_pp.dem.raster import DemConfig
 from vggt_slam_pp.backend.worker import BackendWorker
+from vggt_slam_pp.dem.raster import DemConfig
 from vggt_slam_pp.errors import EvaluationError, FrontendError, InputError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult

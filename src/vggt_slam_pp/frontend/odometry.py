@@ -70,14 +70,6 @@ def shared_frames(prev: SubmapPrediction, curr: SubmapPrediction) -> list[Shared
     return out
 
 
-def overlap_correspondences(prev: SubmapPrediction, curr: SubmapPrediction) -> tuple[np.ndarray, np.ndarray]:
-    """Points of every shared frame in (prev submap, curr submap) coordinates, paired by key: [M,3] x 2."""
-    shared = shared_frames(prev, curr)
-    if not shared:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    return np.concatenate([s.p_prev for s in shared]), np.concatenate([s.p_curr for s in shared])
-
-
 def estimate_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: SubmapPrediction,
                   config: OdometryConfig | None = None) -> OdometryEdge:
     """``T_prev_curr`` with its residual and inlier ratio; degrades (logged, ``degraded=True`` with a

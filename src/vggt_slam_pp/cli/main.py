@@ -185,8 +185,8 @@ def _print_summary(report: dict, out) -> None:
     degraded = [e for e in edges if e["degraded"]]
     recovered = [e for e in edges if e.get("cause") and not e["degraded"]]
     if degraded:
-        print(f"WARNING: {len(degraded)} of {len(edges)} odometry edges degraded (motion extrapolated, "
-              f"large uncertainty): " + "; ".join(f"{e['prev']}->{e['curr']} {e['cause']}" for e in degraded[:5]))
+        print(f"WARNING: {len(degraded)} of {len(edges)} odometry edges degraded (given a large uncertainty; "
+              f"see report.json): " + "; ".join(f"{e['prev']}->{e['curr']} {e['cause']}" for e in degraded[:5]))
     elif edges:
         print(f"odometry: {len(edges)} edges, none degraded" +
               (f" ({len(recovered)} recovered by a bridge)" if recovered else ""))

@@ -78,11 +78,12 @@ def estimate_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: Subm
     if not np.isin(curr.frame_indices, prev.frame_indices).any():
         raise GeometryError(f"submaps {prev_id} and {curr_id} do not share an overlap frame")
     method = c.method if c.method != "auto" else ("points" if curr.dense else "pose_scale")
-    shared = [s for s in shared_frames(prev, curr) if len(s.p_prev)]
+    every = shared_frames(prev, curr)
+    shared = [s for s in every if len(s.p_prev)]
     n = int(sum(len(s.p_prev) for s in shared))
+    disagreement = link_problem(prev, curr, c, every)
     if n < c.min_correspondences:
-        return extrapolated_edge(prev_id, prev, curr_id, curr, _link_cause(prev, curr, n), n)
-    disagreement = link_problem(prev, curr, c)
+        return extrapolated_edge(prev_id, prev, curr_id, curr, disagreement, n)
     try:
         edge = _fit(prev_id, prev, curr_id, curr, shared, n, method, c)
     except GeometryError as exc:
@@ -113,25 +114,29 @@ def _fit(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int, method
     raise GeometryError(f"unknown odometry method {method!r}")
 
 
-def link_problem(prev: SubmapPrediction, curr: SubmapPrediction, config: OdometryConfig | None = None) -> str:
+def link_problem(prev: SubmapPrediction, curr: SubmapPrediction, config: OdometryConfig | None = None,
+                 shared: list[SharedFrame] | None = None) -> str:
     """Why the shared keyframes cannot link the two submaps soundly ("" when they can): too few
-    correspondences, or reconstructions that disagree on the shared keyframes' relative rotations."""
+    correspondences, or reconstructions that disagree on the shared keyframes' relative rotations.
+    ``shared``: :func:`shared_frames` of the pair, when already computed."""
     c = config or OdometryConfig()
-    n = sum(len(s.p_prev) for s in shared_frames(prev, curr))
+    shared = shared_frames(prev, curr) if shared is None else shared
+    n = sum(len(s.p_prev) for s in shared)
     if n < c.min_correspondences:
         return _link_cause(prev, curr, n)
-    worst = overlap_disagreement(prev, curr)
+    worst = overlap_disagreement(prev, curr, shared)
     if worst > c.max_disagreement_deg:
         return f"the submaps disagree by {worst:.1f} deg on the overlap keyframes' relative rotation"
     return ""
 
 
-def overlap_disagreement(prev: SubmapPrediction, curr: SubmapPrediction) -> float:
+def overlap_disagreement(prev: SubmapPrediction, curr: SubmapPrediction,
+                         shared: list[SharedFrame] | None = None) -> float:
     """Largest disagreement (degrees) between the two submaps on the relative rotation of a pair of
     shared keyframes; NaN with fewer than two shared keyframes. Two sound reconstructions agree to a
     fraction of a degree (0.01-0.06 deg measured); a broken one (a wrong initial pair, a turn folded
     onto itself) disagrees by degrees while every frame still counts as registered."""
-    shared = shared_frames(prev, curr)
+    shared = shared_frames(prev, curr) if shared is None else shared
     worst = float("nan")
     for a in range(len(shared)):
         for b in range(a + 1, len(shared)):

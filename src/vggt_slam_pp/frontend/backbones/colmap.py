@@ -303,7 +303,7 @@ class ColmapBackbone(Backbone):
         self._estimated = ((int(cam.width), int(cam.height)), params)
         self.camera = {"model": cam.model.name, "params": params, "width": int(cam.width), "height": int(cam.height),
                        "source": source, "history": history}
-        log.info("colmap: camera %s (fx fy cx cy k1 k2 p1 p2) %s", source, " ".join(f"{v:.4g}" for v in params))
+        log.info("colmap: %s camera %s: %s", cam.model.name, source, " ".join(f"{v:.4g}" for v in params))
 
     # -- conversion -----------------------------------------------------------------------------
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:

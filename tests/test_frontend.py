@@ -16,7 +16,7 @@ from vggt_slam_pp.frontend.backbones.replay import (
     save_prediction,
 )
 from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
-from vggt_slam_pp.frontend.frontend import FrontendConfig, SubmapAssembler
+from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, SubmapAssembler
 from vggt_slam_pp.frontend.keyframes import KeyframeConfig, KeyframeSelector
 from vggt_slam_pp.frontend.odometry import OdometryConfig, chain, estimate_edge
 from vggt_slam_pp.frontend.types import SubmapPrediction
@@ -204,6 +204,41 @@ def test_simulated_default_noise_drifts_with_distance(tmp_path, loop_sequence):
     assert err[q:2 * q].mean() > 5 * err[:5].mean()
     travelled = np.r_[0, np.cumsum(np.linalg.norm(np.diff(gt.positions, axis=0), axis=1))]
     assert np.corrcoef(travelled[:2 * q], err[:2 * q])[0, 1] > 0.6  # grows with distance (first half)
+
+
+def test_realistic_noise_drifts_in_scale_as_a_random_walk(loop_sequence):
+    """Inside a submap the warp grows from nothing at the first frame to the drawn drift at the last; the
+    overlap frame carries it into the next submap, so chained scale is a random walk, unlike the default
+    profile's per-submap scale error (which the odometry edge absorbs)."""
+    idx, gt = loop_sequence.frame_ground_truth()
+    poses = dict(zip(idx.tolist(), gt.poses, strict=True))
+    frames = [loop_sequence[i] for i in (0, 6, 12, 18)]
+    noise = dataclasses.replace(SimulatedNoise.zero(3), scale_drift=0.05, yaw_drift_deg=2.0)
+    pred = SimulatedBackbone(poses, noise).predict(frames)
+    true = [np.linalg.inv(poses[f.index]) @ poses[frames[0].index] for f in frames]
+    # camera centres in the submap frame: the first exact, the last scaled and turned by the full drift
+    c_pred = [np.linalg.inv(T)[:3, 3] for T in pred.T_cam_submap]
+    c_true = [np.linalg.inv(T)[:3, 3] for T in true]
+    assert np.allclose(c_pred[0], c_true[0]) and np.allclose(pred.T_cam_submap[0], np.eye(4))
+    ratio = np.linalg.norm(c_pred[-1]) / np.linalg.norm(c_true[-1])
+    assert abs(np.log(ratio)) > 1e-4
+    mid = np.linalg.norm(c_pred[1]) / np.linalg.norm(c_true[1])
+    assert abs(np.log(mid)) == pytest.approx(abs(np.log(ratio)) / 3, rel=0.05)  # grows linearly along the submap
+    assert np.allclose(SimulatedBackbone(poses, noise).predict(frames).points[2], pred.points[2])  # seeded
+
+
+def test_realistic_profile_fails_some_submaps_into_degraded_edges(loop_sequence):
+    idx, gt = loop_sequence.frame_ground_truth()
+    poses = dict(zip(idx.tolist(), gt.poses, strict=True))
+    noise = dataclasses.replace(SimulatedNoise.realistic(0), failure_rate=1.0)
+    fe = Frontend(SimulatedBackbone(poses, noise), FAST)
+    for i in range(len(loop_sequence)):
+        fe.process(loop_sequence[i])
+    res = fe.finish()
+    assert len(res.edges) >= 2 and all(e.degraded and e.method == "extrapolated" for e in res.edges)
+    assert SimulatedNoise.profile("realistic").scale_drift > 0 and SimulatedNoise.profile("zero").depth_noise == 0
+    with pytest.raises(FrontendError, match="unknown noise profile"):
+        SimulatedNoise.profile("extreme")
 
 
 class _Broken(Backbone):

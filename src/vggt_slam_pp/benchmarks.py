@@ -221,21 +221,22 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
             "targets": {"covisibility_recall": 0.9, "vpr_top1_precision": 0.8}}
 
 
-def _synthetic_run_config(seed: int, backend: bool = True, **backend_fields):
+def _synthetic_run_config(seed: int, backend: bool = True, noise: str = "default", **backend_fields):
     from vggt_slam_pp.backend.backend import BackendConfig
     from vggt_slam_pp.frontend.frontend import FrontendConfig
     from vggt_slam_pp.frontend.keyframes import KeyframeConfig
     from vggt_slam_pp.pipeline import BackboneConfig, RunConfig
 
-    return RunConfig(backbone=BackboneConfig(name="simulated", seed=seed),
+    return RunConfig(backbone=BackboneConfig(name="simulated", seed=seed, noise=noise),
                      frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8),
                      save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields))
 
 
 def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(), frames: int = 600,
                 width: int = 320, height: int = 240, overlap_threshold: float = 0.3,
-                workdir: str = "runs/bench_loops", seed: int = 0, fps_repeats: int = 3, progress=None) -> dict:
-    """The whole system on synthetic revisits: simulated backbone (default noise), ``hog`` encoder.
+                workdir: str = "runs/bench_loops", seed: int = 0, fps_repeats: int = 3, noise: str = "default",
+                progress=None) -> dict:
+    """The whole system on synthetic revisits: simulated backbone (``noise`` profile), ``hog`` encoder.
 
     Per scenario (built-in scenes and any ``trajectories`` files): the run with the back-end (its own
     process) and without it. ``ate_odometry`` / ``ate_final``: keyframe ATE (Sim(3)-aligned) of the
@@ -260,8 +261,8 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
         if source is None:
             results[name] = {"skipped": "../shared/data/gt_trajectories_only not found"}
             continue
-        folder = Path(workdir) / f"run_{name}_{frames}_{seed}"
-        config = _synthetic_run_config(seed)
+        folder = Path(workdir) / f"run_{name}_{frames}_{seed}_{noise}"
+        config = _synthetic_run_config(seed, noise=noise)
         on = run(source, config, folder / "on")
         fps_on, fps_off = [on["frontend_fps"]], []
         for k in range(max(fps_repeats, 1)):
@@ -275,6 +276,9 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
         results[name] = {
             "frames": len(source), "submaps": on["submaps"],
             "ate_odometry": on["ate_rmse_odometry"], "ate_final": on["ate_rmse"],
+            "path_length": on.get("gt_path_length"),
+            "drift_pct_path": 100 * on["ate_rmse_odometry"] / on["gt_path_length"] if on.get("gt_path_length") else None,
+            "degraded_edges": on.get("degraded_edges", 0),
             "ate_reduction": on["ate_reduction"],
             "loops_accepted": on["loops_accepted"], "loops_rejected": on["loops_rejected"],
             "false_loops": len(false), "false_loop_pairs": false,
@@ -285,11 +289,115 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
             "peak_rss_mb": on["peak_rss_mb"], "backend_finish_wait_s": on["timings"]["backend_finish_wait_s"],
         }
     done = [r for r in results.values() if "skipped" not in r]
-    return {"scenarios": results, "encoder": "hog", "backbone": "simulated", "frames": frames,
+    return {"scenarios": results, "encoder": "hog", "backbone": "simulated", "noise": noise, "frames": frames,
             "mean_ate_reduction": float(np.mean([r["ate_reduction"] for r in done])) if done else None,
             "false_loops": int(sum(r["false_loops"] for r in done)),
             "min_fps_ratio": float(min(r["fps_ratio"] for r in done)) if done else None,
             "targets": {"mean_ate_reduction": 0.5, "false_loops": 0, "min_fps_ratio": 0.9}}
+
+
+def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int = 320, height: int = 240,
+                       displacement: float = 1.0, positives: int = 40, negatives: int = 40,
+                       workdir: str = "runs/bench_loops", seed: int = 0, progress=None) -> dict:
+    """Loop registration alone, with no usable initial estimate: submap pairs of synthetic revisits
+    (simulated backbone, default noise), the query's estimate displaced by a random similarity anywhere
+    within ``displacement`` times the drift bounds of the chain between the two
+    (:func:`~vggt_slam_pp.backend.registration.drift_bounds`: uniform yaw, log-scale and shift length).
+
+    Positives: pairs whose ground-truth footprints (2 m cells) share >= 0.3 of the smaller one and where
+    >= 30 % of the query's points lie within 0.4 m of the match's at the truth (the same surfaces were
+    seen), outside the excluded recent submaps; a positive is *found* when accepted within 5 deg, 2 m at the
+    query's centroid and 5 % in scale of the true relative Sim(3) (ICP from the truth itself settles up to
+    ~4 deg / 1 m off on these sparse worlds, docs/backend.md); ``accepted_errors`` lists every accepted
+    positive's (rotation deg, centroid m, log-scale) error. Negatives: pairs
+    sharing no cell, with the odometry bounds of the real chain between them; any acceptance is false.
+    Up to ``positives`` / ``negatives`` pairs per scene, drawn with ``seed``.
+    """
+    from scipy.spatial import cKDTree
+
+    from vggt_slam_pp.backend.registration import RegistrationConfig, drift_bounds, register_loop
+    from vggt_slam_pp.dem.plane import GroundPlane
+    from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
+    from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
+    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, so3_exp, transform_points
+
+    rng = np.random.default_rng(seed)
+    config = RegistrationConfig()
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    out: dict = {"scenes": {}, "displacement": displacement}
+    for scene in scenes:
+        if progress:
+            progress(scene)
+        source = _scene_sequence(scene, frames, width, height, workdir, seed)
+        if source is None:
+            out["scenes"][scene] = {"skipped": "../shared/data/gt_trajectories_only not found"}
+            continue
+        idx, gt = source.frame_ground_truth()
+        gt_poses = dict(zip(idx.tolist(), gt.poses, strict=True))
+        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise(seed=seed)),
+                      FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8))
+        for i in range(len(source)):
+            fe.process(source[i])
+        res = fe.finish()
+        points = [np.concatenate([p for p in sm.prediction.points if len(p)]).astype(float) for sm in res.submaps]
+        # true T_world_submap: ground truth of the first frame, with the submap's scale error undone
+        truth = [gt_poses[int(sm.frame_indices[0])] @ np.diag([*[1 / sm.prediction.info["scale_error"]] * 3, 1.0])
+                 for sm in res.submaps]
+        overlap = _overlap_matrix(_gt_footprints(source, [sm.frame_indices for sm in res.submaps]))
+        n = len(points)
+        world = [transform_points(T, P[:: max(1, len(P) // 2000)]) for T, P in zip(truth, points, strict=True)]
+        trees = [cKDTree(w) for w in world]
+
+        seen_again = {(q, m): float((trees[m].query(world[q], distance_upper_bound=0.4)[0] < 0.4).mean())
+                      for q in range(n) for m in range(q - 2) if overlap[q, m] >= 0.3}  # share within 0.4 m
+        pos = [k for k, v in seen_again.items() if v >= 0.3]
+        neg = [(q, m) for q in range(n) for m in range(q - 2) if overlap[q, m] == 0.0]
+        pos = [pos[k] for k in rng.permutation(len(pos))[:positives]]
+        neg = [neg[k] for k in rng.permutation(len(neg))[:negatives]]
+        found, seconds, false, reasons, errors = 0, [], 0, {}, []
+        for kind, pairs in (("positive", pos), ("negative", neg)):
+            for q, m in pairs:
+                Z = sim3_inverse(truth[m]) @ truth[q]
+                path = sum(np.linalg.norm(truth[k + 1][:3, 3] - truth[k][:3, 3]) for k in range(m, q))
+                bounds = drift_bounds(config, q - m, path, 2.0)
+                a = rng.uniform(0, 2 * np.pi)
+                D = make_sim3(float(np.exp(displacement * rng.uniform(-bounds.max_log_scale, bounds.max_log_scale))),
+                              so3_exp(np.radians([0, 0, displacement * rng.uniform(-bounds.max_yaw_deg,
+                                                                                    bounds.max_yaw_deg)])),
+                              displacement * rng.uniform(0, bounds.max_translation) * np.r_[np.cos(a), np.sin(a), 0])
+                centroid = transform_points(truth[q], points[q].mean(0)[None])[0]
+                D = D @ make_sim3(1.0, np.eye(3), -centroid)  # displaced about the query's centroid
+                D[:3, 3] += centroid
+                T_q = D @ truth[q] if kind == "positive" else truth[q]
+                t0 = time.perf_counter()
+                r = register_loop(q, m, points[q], points[m], T_q, truth[m], plane, 2.0, bounds=bounds, config=config)
+                seconds.append(time.perf_counter() - t0)
+                if kind == "negative":
+                    false += int(r.accepted)
+                    continue
+                ok = False
+                if r.accepted:
+                    E = sim3_inverse(Z) @ r.T_match_query
+                    s, R, _ = decompose_sim3(E)
+                    c_err = np.linalg.norm(transform_points(truth[m] @ r.T_match_query, points[q].mean(0)[None]) -
+                                           transform_points(truth[q], points[q].mean(0)[None]))
+                    rot = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+                    ok = rot < 5.0 and c_err < 2.0 and abs(np.log(s)) < 0.05
+                    errors.append((round(float(rot), 2), round(float(c_err), 2), round(float(np.log(s)), 3)))
+                found += int(ok)
+                key = "found" if ok else ("wrong alignment" if r.accepted else r.reason.split(":")[0].split(" <")[0])
+                reasons[key] = reasons.get(key, 0) + 1
+        out["scenes"][scene] = {"submaps": n, "positives": len(pos), "found": found,
+                                "recall": found / len(pos) if pos else None, "negatives": len(neg),
+                                "false_accepted": false, "outcomes": reasons,
+                                "accepted_errors": errors,  # (rotation deg, centroid m, log-scale) per accepted positive
+                                "seconds_median": float(np.median(seconds)) if seconds else None,
+                                "seconds_max": float(np.max(seconds)) if seconds else None}
+    done = [r for r in out["scenes"].values() if r.get("recall") is not None]
+    out["recall"] = float(np.mean([r["recall"] for r in done])) if done else None
+    out["false_accepted"] = int(sum(r["false_accepted"] for r in done))
+    return out
 
 
 def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: int = 0, width: int = 320,

@@ -60,7 +60,7 @@ class BackboneConfig:
     device: str = "auto"
     stride: int = 2  # dense backbones: pixel stride of the point grid
     replay_dir: str | None = None
-    noise: str = "default"  # simulated: "default" or "zero"
+    noise: str = "default"  # simulated: "default", "realistic" (monocular drift, 1-3 % of the path) or "zero"
     colmap_matcher: str = "exhaustive"  # colmap: "exhaustive" (all pairs in a submap) or "sequential"
     deterministic: bool = True  # colmap: the mapper on one thread too (bit-identical runs, ~30 % slower; docs/frontend.md)
     seed: int = 0
@@ -89,7 +89,7 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
         if matched is None:
             raise FrontendError("the simulated backbone needs ground truth (a synthetic sequence from `synth`)")
         idx, gt = matched
-        noise = SimulatedNoise.zero(b.seed) if b.noise == "zero" else dataclasses.replace(SimulatedNoise(), seed=b.seed)
+        noise = SimulatedNoise.profile(b.noise, b.seed)
         return SimulatedBackbone(dict(zip((int(i) for i in idx), gt.poses, strict=True)), noise,
                                  stride=max(b.stride, 1) * 2)
     if b.name == "vggt":

@@ -8,11 +8,15 @@
 2. its points (world frame, subsampled) go through the covisibility stage: DEM layer, descriptors,
    HNSW voting, VLAD candidates;
 3. the best ``candidates_per_query`` candidates are registered and verified
-   (:func:`~vggt_slam_pp.backend.registration.register_loop`); accepted loops become robust edges,
-   rejected ones are kept with their reason;
+   (:func:`~vggt_slam_pp.backend.registration.register_loop`) within the bounds odometry allows
+   (:meth:`Backend._bounds`); a verified loop becomes a robust edge when it closes a consistent cycle
+   with another verified loop (:meth:`Backend._consistent`, pairwise consistency) or when its
+   correction is within one sigma of the drift model (:meth:`Backend._odometry_consistent`); otherwise
+   it waits for such a partner ("pending"). Rejected candidates are kept with their reason;
 4. with a new loop the graph is optimised: globally when the loop closes further back than
    ``far_loop_submaps``, otherwise over the window (the new submap, its loop partners and their
-   neighbours) with the rest fixed; at :meth:`finish`, globally;
+   neighbours) with the rest fixed; at :meth:`finish`, globally, after which loops the robust graph
+   switched off (weight < ``min_loop_weight``) leave it and are reported as rejected;
 5. layers of submaps that moved by more than ``relocate_min_shift_tiles`` are re-rasterised and
    re-indexed; a :class:`PoseSnapshot` is published.
 
@@ -31,15 +35,24 @@ from types import MappingProxyType
 import numpy as np
 
 from vggt_slam_pp.backend.graph import Edge, GraphConfig, PoseGraph
-from vggt_slam_pp.backend.registration import LoopResult, RegistrationConfig, mutual_matches, register_loop
+from vggt_slam_pp.backend.registration import (
+    LoopBounds,
+    LoopResult,
+    RegistrationConfig,
+    drift_bounds,
+    mutual_matches,
+    register_loop,
+)
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError
 from vggt_slam_pp.frontend.types import OdometryEdge
-from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, transform_points
 from vggt_slam_pp.resources import release_free_memory, rss_mb
 from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
 
 log = logging.getLogger(__name__)
+
+PENDING = "verified, but no cycle-consistent second loop (yet)"
 
 
 @dataclass(frozen=True)
@@ -70,6 +83,10 @@ class BackendConfig:
     # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless its inbox is
     # over half full; once the front-end has finished it runs without pauses. Even at idle priority a busy
     # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
+    loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
+    consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
+    consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle (the query's frame), in tiles
+    min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
 
@@ -138,6 +155,7 @@ class Backend:
         self._version = 0
         self.memory_trace: list[tuple[int, float]] = []
         self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
+        self._pending: list[int] = []  # indices in loops: verified, waiting for a consistent partner
 
     # -- the per-submap step --------------------------------------------------------------------
     def add_submap(self, msg: SubmapMessage) -> PoseSnapshot:
@@ -174,12 +192,11 @@ class Backend:
                                    "source": c.source} for c in res.edges]
             self.timings["covisibility_s"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            accepted = self._verify(sid, res, transform_points(T, _subsample(points,
-                                                                             self.config.registration_max_points)))
+            accepted = self._verify(sid, res, _subsample(points, self.config.registration_max_points))
             self.timings["registration_s"] += time.perf_counter() - t0
         if accepted:
             far = sid - min(r.match for r in accepted) > self.config.far_loop_submaps
-            window = None if far else self._window(sid, [r.match for r in accepted])
+            window = None if far else self._window(sid, [n for r in accepted for n in (r.query, r.match)])
             self._optimize(window)
         self.seconds.append(time.perf_counter() - t_start)
         snap = self.snapshot()
@@ -226,32 +243,119 @@ class Backend:
         far = [(dj, j) for j, dj in zip(old, dist, strict=True) if dj > radius and j not in taken]
         return [(min(far)[1], 0.0, np.inf, "injected")] if far else []
 
-    def _verify(self, sid: int, res, points_world: np.ndarray) -> list[LoopResult]:
-        grid = self.stage.grid
-        accepted = []
+    def _verify(self, sid: int, res, points: np.ndarray) -> list[LoopResult]:
+        """Register every candidate of ``sid`` (``points``: its own frame); a geometrically verified loop
+        enters the graph once it is cycle-consistent with another verified loop (:meth:`_consistent`).
+        Returns the loops added now (a pending loop joins when its partner arrives)."""
+        accepted: list[LoopResult] = []
         for match, score, margin, source in self._candidates(sid, res):
             keys, desc = self.stage.tiles_of(match)
             ia, ib = mutual_matches(res.chip_descriptors, desc)
             chip_uv = self.stage.tile_centers_uv(res.chip_keys[ia])
             tile_uv = self.stage.tile_centers_uv(keys[ib])
             T_m = self.graph.poses[match]
-            pm = transform_points(T_m, _subsample(self.store.get(match), self.config.registration_max_points))
-            r = register_loop(sid, match, points_world, pm, grid.plane, grid.tile_size, self.graph.poses[sid], T_m,
-                              chip_uv, tile_uv, score, margin, self.config.registration)
+            pm = _subsample(self.store.get(match), self.config.registration_max_points)
+            r = register_loop(sid, match, points, pm, self.graph.poses[sid], T_m, self.stage.grid.plane,
+                              self.stage.grid.tile_size, chip_uv, tile_uv, score, margin, self._bounds(match, sid),
+                              self.config.registration)
             r = dataclasses.replace(r, source=source)
+            log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
+                     sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
+            if not r.accepted:
+                self.loops.append(r)
+                continue
+            Z0 = sim3_inverse(T_m) @ self.graph.poses[sid]
+            sE, RE, tE = decompose_sim3(sim3_inverse(Z0) @ r.T_match_query)
+            log.debug("verified %d->%d: vs estimate scale %.3f angle %.1f t %.2f guess %s distinct %.2f", sid, match, sE,
+                      np.degrees(np.arccos(np.clip((np.trace(RE) - 1) / 2, -1, 1))), np.linalg.norm(tE), r.guess,
+                      r.distinctiveness)
+            partners = self._consistent(r)
+            if self.config.loop_consistency and not partners and not self._odometry_consistent(r):
+                self._pending.append(len(self.loops))
+                self.loops.append(dataclasses.replace(r, accepted=False, reason=PENDING))
+                continue
+            for k in partners:  # pending partners join now
+                if k in self._pending:
+                    self._pending.remove(k)
+                    self.loops[k] = dataclasses.replace(self.loops[k], accepted=True, reason="accepted")
+                    accepted.append(self._add_loop(self.loops[k]))
             self.loops.append(r)
-            log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, residual %.3g, guess %s)",
-                     sid, match, r.reason, r.overlap, r.structure_overlap, r.residual, r.guess)
-            if r.accepted:
-                s_m, _, _ = decompose_sim3(T_m)
-                g = self.config.graph
-                trans = max(r.residual, g.loop_trans_sigma_tiles * grid.tile_size) / float(s_m)
-                sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
-                info = r.information if self.config.loop_information == "icp" else None
-                self.graph.add_edge(Edge(match, sid, r.T_match_query, sig, "loop", r.to_dict(), info))
-                accepted.append(r)
-        self.stage.confirm(sid, [r.match for r in accepted])
+            accepted.append(self._add_loop(r))
+        # the sequence prior follows every verified loop, pending ones too: their partner is likely next door
+        self.stage.confirm(sid, [r.match for r in self.loops if r.query == sid and (r.accepted or r.reason == PENDING)])
         return accepted
+
+    def _add_loop(self, r: LoopResult) -> LoopResult:
+        grid = self.stage.grid
+        s_m, _, _ = decompose_sim3(self.graph.poses[r.match])
+        g = self.config.graph
+        trans = max(r.residual, g.loop_trans_sigma_tiles * grid.tile_size) / float(s_m)
+        sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
+        info = r.information if self.config.loop_information == "icp" else None
+        self.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", r.to_dict(), info))
+        return r
+
+    def _consistent(self, r: LoopResult) -> list[int]:
+        """Indices (in :attr:`loops`) of the verified loops, accepted or pending, that close a consistent
+        cycle with ``r`` (pairwise consistency, as in PCM): loops (q, m) and (q', m') with |q - q'| and
+        |m - m'| at most ``consistency_submaps`` (not both zero) predict each other through the short
+        odometry chains q -> q' and m -> m' (current estimate): ``E = (O_m Z') ^ -1 Z O_q`` must be the
+        identity within what odometry drifts over those chains (3 sigma of the registration's drift model in
+        scale and angle; ``consistency_trans_tiles`` plus ``translation_drift`` of the two chains' length).
+        A wrong loop is a random alignment: it rarely agrees with another."""
+        c, reg = self.config, self.config.registration
+        P = self.graph.poses
+        out = []
+        for k, o in enumerate(self.loops):
+            if not (o.accepted or k in self._pending) or o.T_match_query is None:
+                continue
+            dq, dm = abs(o.query - r.query), abs(o.match - r.match)
+            if dq > c.consistency_submaps or dm > c.consistency_submaps or (dq == 0 and dm == 0):
+                continue
+            O_m = sim3_inverse(P[r.match]) @ P[o.match]
+            O_q = sim3_inverse(P[r.query]) @ P[o.query]
+            E = sim3_inverse(O_m @ o.T_match_query) @ r.T_match_query @ O_q
+            s, R, t = decompose_sim3(E)
+            walk = 3.0 * np.sqrt(max(dq + dm, 1))
+            s_m, _, _ = decompose_sim3(P[r.match])
+            chains = self._path(r.query, o.query) + self._path(r.match, o.match)
+            tol_t = (c.consistency_trans_tiles * self.stage.grid.tile_size + reg.translation_drift * chains) / float(s_m)
+            ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+            log.debug("cycle %d->%d / %d->%d: scale %.3f, angle %.2f deg, translation %.2f (tolerance %.2f)",
+                      r.query, r.match, o.query, o.match, s, ang, np.linalg.norm(t), tol_t)
+            if (abs(np.log(s)) <= walk * reg.scale_sigma_per_submap and ang <= walk * reg.yaw_sigma_per_submap_deg
+                    and np.linalg.norm(t) <= tol_t):
+                out.append(k)
+        return out
+
+    def _odometry_consistent(self, r: LoopResult) -> bool:
+        """A loop whose correction is within one sigma of the drift model (a third of :meth:`_bounds`) closes
+        a consistent cycle with the odometry chain itself: it needs no partner loop."""
+        b = self._bounds(r.match, r.query)
+        s, R, _ = decompose_sim3(r.correction)
+        centroid = transform_points(self.graph.poses[r.query], self._centroid[r.query][None])[0]
+        moved = float(np.linalg.norm(transform_points(r.correction, centroid[None])[0] - centroid))
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+        return (abs(np.log(s)) <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3
+                and moved <= b.max_translation / 3)
+
+    def _path(self, a: int, b: int) -> float:
+        """Length of the chain of submap origins between submaps ``a`` and ``b`` in the current estimate."""
+        lo, hi = min(a, b), max(a, b)
+        centres = [self.graph.poses[i][:3, 3] for i in range(lo, hi + 1) if i in self.graph.poses]
+        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1))) if len(centres) > 1 else 0.0
+
+    def _bounds(self, match: int, query: int) -> LoopBounds:
+        """What odometry can have drifted between ``match`` and ``query`` (submap ids):
+        :func:`~vggt_slam_pp.backend.registration.drift_bounds` over the chain between them in the
+        current estimate, with its degraded edges."""
+        lo, hi = min(match, query), max(match, query)
+        centres = [self.graph.poses[i][:3, 3] for i in range(lo, hi + 1) if i in self.graph.poses]
+        steps = np.linalg.norm(np.diff(centres, axis=0), axis=1) if len(centres) > 1 else np.zeros(0)
+        degraded = [float(steps[e.i - lo]) for e in self.graph.edges if e.kind == "odometry" and lo <= e.i < hi
+                    and e.info.get("degraded") and e.i - lo < len(steps)]
+        return drift_bounds(self.config.registration, hi - lo, float(steps.sum()), self.stage.grid.tile_size,
+                            degraded)
 
     def _window(self, sid: int, matches: list[int]) -> set[int]:
         k = self.config.window_neighbours
@@ -284,6 +388,24 @@ class Backend:
             release_free_memory()
         self.timings["relocate_s"] += time.perf_counter() - t0
 
+    def _prune_loops(self) -> None:
+        """Loops the robust pose graph switched off (weight below ``min_loop_weight`` after the global
+        solve: odometry and the other loops cannot explain them) leave the graph and are reported as
+        rejected; the graph is solved once more without them."""
+        weights = self.graph.loop_weights()
+        loops = [e for e in self.graph.edges if e.kind == "loop"]
+        out = {(e.j, e.i): w for e, w in zip(loops, weights, strict=True) if w < self.config.min_loop_weight}
+        if not out:
+            return
+        self.graph.edges = [e for e in self.graph.edges if e.kind != "loop" or (e.j, e.i) not in out]
+        for k, r in enumerate(self.loops):
+            if r.accepted and (r.query, r.match) in out:
+                self.loops[k] = dataclasses.replace(
+                    r, accepted=False, reason=f"rejected by the pose graph: odometry and the other loops do not "
+                                              f"explain it (robust weight {out[(r.query, r.match)]:.3f})")
+        log.info("%d loop(s) left the graph at the end (robust weight < %g)", len(out), self.config.min_loop_weight)
+        self._optimize(None)  # without any loop left this returns the odometry chain
+
     # -- outputs --------------------------------------------------------------------------------
     def snapshot(self) -> PoseSnapshot:
         poses = {}
@@ -298,6 +420,7 @@ class Backend:
         """Final global optimisation (when there is any loop) and the result."""
         if any(e.kind == "loop" for e in self.graph.edges):
             self._optimize(None)
+            self._prune_loops()
         weights = iter(self.graph.loop_weights())
         edges = []
         for e in self.graph.edges:

@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2
 
 from vggt_slam_pp.errors import BackendError
 from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, sim3_log
@@ -28,7 +29,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class GraphConfig:
-    robust_kernel: str = "cauchy"  # "cauchy", "huber" or "none" (loop factors)
+    robust_kernel: str = "cauchy"  # "cauchy", "huber", "none" (loop factors) or "gnc" (graduated non-convexity,
+    # truncated least squares: loops are in or out; see PoseGraph._solve_gnc)
     kernel_width: float = 0.5  # in whitened units: our sigmas are ~5x the actual spread (whitened residuals
     # ~0.2-0.5), so 0.5 is about the typical residual; 1.0 left wrong loops almost unweighted (docs/backend.md)
     continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
@@ -41,6 +43,7 @@ class GraphConfig:
     loop_trans_sigma_tiles: float = 0.02  # floor of a loop's translation sigma, in tiles (ICP along a
     # street of facades is weakly constrained along the street: the RMS residual understates that)
     max_iterations: int = 100
+    gnc_inlier_probability: float = 0.99  # gnc: a loop is an inlier within this chi-square quantile
 
 
 @dataclass(frozen=True)
@@ -144,8 +147,8 @@ class PoseGraph:
         if not self.poses:
             return {}
         kernel = self.config.robust_kernel
-        if kernel not in ("cauchy", "huber", "none"):
-            raise BackendError(f"unknown robust kernel {kernel!r}; use cauchy, huber or none")
+        if kernel not in ("cauchy", "huber", "none", "gnc"):
+            raise BackendError(f"unknown robust kernel {kernel!r}; use gnc, cauchy, huber or none")
         # Cauchy is not convex: a true loop closing a large drift starts far out in its tail and is
         # ignored. Continuation (optional) solves with Huber (convex) first, then with Cauchy from there;
         # a wrong loop keeps a large residual and loses its weight in the second solve. On the demo it
@@ -171,13 +174,17 @@ class PoseGraph:
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
             for e in touching:
-                graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), self._noise(e, stage)))
+                noise = self._noise(e, "none" if stage == "gnc" else stage)
+                graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), noise))
             for i in sorted(fixed):
                 graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))
             if err0 is None:
                 err0 = graph.error(values)
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(self.config.max_iterations)
+            if stage == "gnc":
+                values = self._solve_gnc(graph, values, params, [e.kind == "loop" for e in touching])
+                continue
             opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
             values = opt.optimize()
             iterations += int(opt.iterations())
@@ -196,6 +203,21 @@ class PoseGraph:
                            "global": window is None}
         return out
 
+    def _solve_gnc(self, graph, values, lm_params, is_loop: list[bool]):
+        """Graduated non-convexity (GTSAM ``GncLMOptimizer``, truncated least squares) over plain Gaussian
+        factors: odometry and priors are known inliers; each loop ends with weight 1 (inlier) or 0. GNC
+        starts from the convex problem, so a true loop that moves the map by tens of metres is not lost in
+        a kernel's flat tail, and a loop that the odometry and the other loops cannot explain within its
+        chi-square bound (``gnc_inlier_probability``) is switched off."""
+        import gtsam
+
+        params = gtsam.GncLMParams(lm_params)
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers([k for k in range(graph.size()) if k >= len(is_loop) or not is_loop[k]])
+        opt = gtsam.GncLMOptimizer(graph, values, params)
+        opt.setInlierCostThresholdsAtProbability(self.config.gnc_inlier_probability)
+        return opt.optimize()
+
     def loop_weights(self) -> list[float]:
         """Robust weight (0..1) of every loop edge at the current poses, in edge order (for reports)."""
         out = []
@@ -205,6 +227,9 @@ class PoseGraph:
                 continue
             r = sim3_log(sim3_inverse(e.T_ij) @ sim3_inverse(self.poses[e.i]) @ self.poses[e.j])
             d = e.whitened_norm(r)  # same [omega, u, lambda] order as the sigmas
-            out.append(1.0 / (1.0 + (d / k) ** 2) if kernel == "cauchy" else (1.0 if d <= k or kernel == "none"
-                                                                              else k / d))
+            if kernel == "gnc":  # truncated least squares: in or out by the chi-square bound
+                out.append(float(d**2 <= chi2.ppf(self.config.gnc_inlier_probability, 7)))
+            else:
+                out.append(1.0 / (1.0 + (d / k) ** 2) if kernel == "cauchy" else (1.0 if d <= k or kernel == "none"
+                                                                                  else k / d))
         return out

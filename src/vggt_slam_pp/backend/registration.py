@@ -1,40 +1,46 @@
 """Loop registration and verification (SPEC 3.10: the paper is silent; this is our decision).
 
-For a loop candidate (query submap i, match j), all in the current world estimate:
+A loop candidate (query submap q, match m) is registered from the two submaps' own points, each in
+its own frame; the result is the measurement ``T_match_query`` itself. The current estimate gives
+the up direction (the ground plane's normal in each frame), the unit (``tile_size`` in each submap's
+scale), one initial guess among the others and, through :class:`LoopBounds`, how far odometry can
+have drifted; nothing else.
 
-1. **Planar guess.** Mutual nearest neighbours between i's chip descriptors and j's tile descriptors
-   give 2-D correspondences between tile centres in the DEM plane; RANSAC over 2-point rigid
-   hypotheses (yaw + translation, inlier radius ``ransac_radius_tiles``) gives a planar motion. The
-   identity (the odometry's own guess) is always tried as well, and so are the best ``search_peaks``
-   distinct alignments of a DEM structure search (:func:`dem_search`; a peak after the first only counts
-   with ``alternative_min_structure_overlap``: on repetitive streets the best correlation is often a
-   look-alike one building away).
-2. **3-D refinement.** ICP with scale (Umeyama on nearest neighbours, the rejection radius shrinking
-   from ``icp_radius_tiles`` to ``inlier_radius_tiles``) of i's points onto j's, from each guess.
-3. **Verification.** With the best refinement: ``overlap`` (share of i's points with a neighbour in j
-   within the inlier radius), ``structure_overlap`` (the same for points above the ground: flat ground
-   aligns anywhere, so it is not evidence), the RMS ``residual`` of the inliers and the candidate's
-   vote margin over the next candidate. Accepted only when all pass; a rejected candidate keeps its
-   reason.
+0. **Clean-up.** Isolated points (flying pixels: a wrong depth in mid-air) are removed
+   (:func:`remove_isolated`): they would count as structure everywhere.
+1. **Initial guesses.** The current estimate ("odometry"); with >= 4 inliers, a 2-point planar RANSAC
+   of mutual-NN chip/tile descriptor matches ("planar"); and the ``search_peaks`` best alignments of
+   the estimate-free search (:mod:`vggt_slam_pp.backend.search`: every yaw, scale and shift within
+   the bounds, scored by free-space consistency; "search_k").
+2. **3-D refinement.** Point-to-plane ICP (the rejection radius shrinking from ``icp_radius_tiles`` to
+   ``inlier_radius_tiles``, then ``icp_final_iterations`` more at the inlier radius; log-scale free in
+   the last ``icp_scale_rounds``) of q's points onto m's, from each guess.
+3. **Verification**, on the best refinement (by free-space agreement x structure overlap):
+   ``overlap`` (share of q's points with a neighbour in m within the inlier radius),
+   ``structure_overlap`` (the same for points above the ground: flat ground aligns anywhere),
+   ``agreement`` (:func:`~vggt_slam_pp.backend.search.free_space_agreement`: no building where the
+   other submap saw open ground), the RMS ``residual``, the bounds (scale, yaw and shift of the
+   correction), and no distinct alignment nearly as good (``ambiguity_ratio``: repetitive structure).
+   A rejected candidate keeps its reason. The back-end then asks for a cycle-consistent second loop
+   or a correction within one sigma of the drift model before the loop enters the graph
+   (:mod:`vggt_slam_pp.backend.backend`).
 
-Distances are in tiles (``tile_size``: 2 m when metric, a fraction of the scene depth otherwise), so
-the thresholds follow the scene's unit.
-
-Returns ``T_ji`` in the graph's convention: the measurement between nodes j and i is
-``T_world_j^-1 C T_world_i`` with ``C`` the correction found in the world frame.
+Distances are in tiles (2 m when metric, a fraction of the scene depth otherwise), so the thresholds
+follow the scene's unit. ``correction`` is ``C = T_world_match T_match_query T_world_query^-1``, the
+change the loop asks of the query's pose in the world frame.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vggt_slam_pp.backend.search import SearchConfig, free_space_agreement, search_alignments, up_frame
 from vggt_slam_pp.dem.plane import GroundPlane
 from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, sim3_log, so3_exp, transform_points
-from vggt_slam_pp.vpr.geometry import GeometryConfig, Structure, structure_peaks
 
 log = logging.getLogger(__name__)
 
@@ -44,29 +50,53 @@ class RegistrationConfig:
     ransac_radius_tiles: float = 1.5
     ransac_iterations: int = 500
     min_planar_inliers: int = 4
-    icp_iterations: int = 12
+    icp_iterations: int = 12  # the rejection radius shrinks over these, then
+    icp_final_iterations: int = 6  # these at the inlier radius
+    icp_scale_rounds: int = 3  # the last rounds solve for scale too (more: a partial overlap shrinks onto itself)
     icp_radius_tiles: float = 2.0
     inlier_radius_tiles: float = 0.2
     max_points: int = 4000
+    ground_percentile: float = 20.0  # a submap's ground level: this percentile of its heights
     structure_height_tiles: float = 0.15  # points this far above the ground are "structure"
     min_structure_points: int = 50
     min_overlap: float = 0.2
     min_structure_overlap: float = 0.25  # wrong candidates measured <= 0.16 (bench loops scenes)
     max_residual_tiles: float = 0.15
     min_vote_margin: float = 0.0  # score(candidate) - score(next); 0 disables
-    max_scale_change: float = 0.2  # |log s| of the correction
-    search_cell_tiles: float = 0.2  # DEM search: occupancy-image cell
-    search_max_yaw_deg: float = 15.0
-    search_yaw_step_deg: float = 1.0
-    search_max_shift_tiles: float = 5.0
-    search_peaks: int = 2  # distinct DEM-search alignments refined by ICP (the best first; a third
-    # accepted repetitive-structure look-alikes on other bench worlds)
-    alternative_min_structure_overlap: float = 0.35  # a peak after the first counts only with this much
+    search: SearchConfig = field(default_factory=SearchConfig)  # no initial guess: backend/search.py
+    search_peaks: int = 4  # its best alignments refined by ICP (besides the current estimate's guess)
+    # what odometry can have drifted between the two submaps (LoopBounds, 3 sigma of a random walk)
+    max_scale_change: float = 0.7  # |log s| of the correction: never more than a factor 2
+    scale_sigma_per_submap: float = 0.05  # odometry log-scale drift per submap
+    min_scale_bound: float = 0.1
+    yaw_sigma_per_submap_deg: float = 1.5
+    min_yaw_bound_deg: float = 10.0
+    translation_drift: float = 0.06  # the query may have moved this share of the path between the two
+    min_translation_bound_tiles: float = 3.0
+    degraded_log_scale: float = 0.3  # each degraded (extrapolated) odometry edge in between adds these
+    degraded_yaw_deg: float = 30.0
+    degraded_steps: float = 2.0  # times that edge's own length
+    agreement_cell_tiles: float = 0.25  # free-space agreement (backend/search.py): its cell
+    min_agreement: float = 0.6  # share of structure cells consistent with the other side's observations
+    min_agreement_cells: int = 10
+    ambiguity_ratio: float = 0.85  # a distinct alignment this close to the best (agreement x structure
+    # overlap): ambiguous
     normals_k: int = 10
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
     floor_rot_sigma: float = 0.1  # loop information: weak prior per ICP parameter (rad, tiles, log-scale)
     floor_trans_sigma_tiles: float = 5.0
     floor_scale_sigma: float = 0.1
+
+
+@dataclass(frozen=True)
+class LoopBounds:
+    """How far odometry can have drifted between two submaps: the loop's correction may change the
+    query's scale by at most ``max_log_scale`` (|log s|), turn it by ``max_yaw_deg`` about the up axis
+    and move its centroid by ``max_translation`` (world units). The search covers exactly this."""
+
+    max_log_scale: float
+    max_translation: float
+    max_yaw_deg: float = 180.0
 
 
 @dataclass(frozen=True)
@@ -86,12 +116,36 @@ class LoopResult:
     constraint_ratio: float = 0.0  # weakest / strongest in-plane translation information of the ICP
     information: np.ndarray | None = None  # 7x7, in the pose graph's tangent of T_match_query
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
+    agreement: float = 0.0  # free-space agreement of the two submaps at the result
+    agreement_cells: int = 0  # structure cells it was measured on
+    distinctiveness: float = 0.0  # the search's best alignment score over its best distinct rival
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
-                "constraint_ratio": self.constraint_ratio, "source": self.source}
+                "constraint_ratio": self.constraint_ratio, "source": self.source,
+                "agreement": self.agreement, "agreement_cells": self.agreement_cells,
+                "distinctiveness": self.distinctiveness}
+
+
+def drift_bounds(config: RegistrationConfig, submaps: int, path: float, tile_size: float,
+                 degraded_steps: list[float] | None = None) -> LoopBounds:
+    """What odometry can have drifted over ``submaps`` odometry edges covering ``path`` (world units): 3
+    sigma of a random walk in log-scale and yaw (``scale_sigma_per_submap``, ``yaw_sigma_per_submap_deg``,
+    with floors) and ``translation_drift`` of the path (at least ``min_translation_bound_tiles``). Each
+    degraded (extrapolated) edge in between, of length ``degraded_steps[k]``, adds ``degraded_log_scale``,
+    ``degraded_yaw_deg`` and ``degraded_steps`` times its length; the physical limits cap the result."""
+    c = config
+    walk = 3.0 * np.sqrt(max(submaps, 1))
+    log_s = max(c.min_scale_bound, walk * c.scale_sigma_per_submap)
+    yaw = max(c.min_yaw_bound_deg, walk * c.yaw_sigma_per_submap_deg)
+    trans = max(c.translation_drift * path, c.min_translation_bound_tiles * tile_size)
+    for step in degraded_steps or []:
+        log_s += c.degraded_log_scale
+        yaw += c.degraded_yaw_deg
+        trans += c.degraded_steps * step
+    return LoopBounds(min(log_s, c.max_scale_change), trans, min(yaw, 180.0))
 
 
 def planar_ransac(src_uv: np.ndarray, dst_uv: np.ndarray, radius: float, iterations: int = 500,
@@ -149,6 +203,16 @@ def _subsample(points: np.ndarray, n: int, seed: int) -> np.ndarray:
     if len(points) <= n:
         return points
     return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
+
+
+def remove_isolated(points: np.ndarray, k: int = 4, factor: float = 3.0) -> np.ndarray:
+    """The points [N,3] whose distance to their ``k``-th neighbour is at most ``factor`` times the median
+    such distance: flying pixels (a wrong depth far from any surface) would otherwise stand above the
+    ground as "structure" everywhere and make any alignment look supported."""
+    if len(points) <= k + 1:
+        return points
+    d = cKDTree(points).query(points, k + 1)[0][:, -1]
+    return points[d <= factor * max(float(np.median(d)), 1e-12)]
 
 
 def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
@@ -234,51 +298,46 @@ def loop_information(H: np.ndarray, centre: np.ndarray, C: np.ndarray, T_world_m
     return 0.5 * (info + info.T)
 
 
-def dem_search(src: np.ndarray, dst: np.ndarray, plane: GroundPlane, ground: float, height: float, cell: float,
-               max_yaw_deg: float, yaw_step_deg: float, max_shift: float, count: int = 1
-               ) -> list[tuple[np.ndarray, float]]:
-    """Planar motions (yaw, shift) aligning the structure of ``src`` onto ``dst``: exhaustive yaw and
-    normalised cross-correlation of their structure-occupancy images in the ground plane.
+def correction_size(C: np.ndarray, point: np.ndarray) -> tuple[float, float, float]:
+    """(|log scale|, rotation angle in degrees, displacement of ``point`` [3]) of a world-frame correction."""
+    s, R, _ = decompose_sim3(C)
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return abs(float(np.log(s))), angle, float(np.linalg.norm(transform_points(C, point[None])[0] - point))
 
-    Points higher than ``ground + height`` are rasterised into ``cell``-sized occupancy images (blurred by
-    one cell); for each yaw about the source structure's centroid, the shifts within ``max_shift`` that
-    maximise the normalised correlation (OpenCV ``TM_CCORR_NORMED``). Returns up to ``count`` distinct
-    alignments, best first: (4x4 world motion, score in [0, 1]); empty when either side has too little
-    structure. Repetitive structure (a row of similar buildings) gives several peaks of similar height,
-    and which one wins can flip with a few decimetres of drift, so the caller refines more than one.
-    """
-    cs, cd = plane.to_canonical(src), plane.to_canonical(dst)
-    us, ud = cs[cs[:, 2] > ground + height, :2], cd[cd[:, 2] > ground + height, :2]
-    # the same correlation as place recognition's re-ranking, on points (weight 1 each) in world units
-    search = GeometryConfig(cell_tiles=cell, max_yaw_deg=max_yaw_deg, yaw_step_deg=yaw_step_deg,
-                            max_shift_tiles=max_shift, min_cells=10)
-    out = []
-    for g in structure_peaks(Structure(us, np.ones(len(us))), Structure(ud, np.ones(len(ud))), 1.0, search, count,
-                             min_separation_tiles=5 * cell):
-        if g.score <= 0:
-            continue
-        yaw = np.radians(g.yaw_deg)
-        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
-        centre = us.mean(0)
-        T2 = np.eye(3)
-        T2[:2, :2], T2[:2, 2] = R, centre - R @ centre + g.shift
-        out.append((planar_to_world(plane, T2), g.score))
-    return out
+
+def _drift_prior(C: np.ndarray, point: np.ndarray, bounds: LoopBounds) -> float:
+    """How plausible a correction is under the drift model (bounds = 3 sigma): a heavy-tailed
+    ``1 / (1 + d^2 / 9)`` of its normalised size ``d``. Among alignments the submaps support about equally
+    (repetitive or sparse structure), the one odometry explains better wins; a far one needs clearly
+    better evidence. Verification does not use it."""
+    log_s, angle, moved = correction_size(C, point)
+    d2 = sum((3 * x / max(b, 1e-9)) ** 2 for x, b in ((log_s, bounds.max_log_scale), (angle, bounds.max_yaw_deg),
+                                                      (moved, bounds.max_translation)) if np.isfinite(b))
+    return 1.0 / (1.0 + d2 / 9.0)
 
 
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
-                  plane: GroundPlane, tile_size: float, T_world_query: np.ndarray, T_world_match: np.ndarray,
+                  T_world_query: np.ndarray, T_world_match: np.ndarray, plane: GroundPlane, tile_size: float,
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
-                  margin: float = np.inf, config: RegistrationConfig | None = None) -> LoopResult:
+                  margin: float = np.inf, bounds: LoopBounds | None = None,
+                  config: RegistrationConfig | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
-        points_query, points_match: [N,3], [M,3] points in the world frame (current estimate).
+        points_query, points_match: [N,3], [M,3] points, each in its own submap's frame.
+        T_world_query, T_world_match: the current estimate; it gives the up direction (the ground plane's
+            normal), the unit (``tile_size``, world units, in each submap's scale) and one initial guess
+            among the others; the result does not depend on it otherwise.
         chip_uv, tile_uv: [K,2] matched chip / tile centres in canonical plane coordinates (may be empty).
         margin: the candidate's vote margin over the next candidate.
+        bounds: what odometry can have drifted between the two (None: the physical limits only).
     """
     c = config or RegistrationConfig()
-    unit = float(tile_size)
+    s_m, R_m, _ = decompose_sim3(T_world_match)
+    _, R_q, _ = decompose_sim3(T_world_query)
+    unit = float(tile_size) / float(s_m)  # one tile in the match's frame
+    bounds = bounds or LoopBounds(c.max_scale_change, np.inf)
+    max_log_scale = min(bounds.max_log_scale, c.max_scale_change)
 
     def reject(reason: str, **kw) -> LoopResult:
         base = dict(T_match_query=None, correction=None, overlap=0.0, structure_overlap=0.0, residual=np.inf,
@@ -290,82 +349,96 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject("too few points")
     if c.min_vote_margin > 0 and margin < c.min_vote_margin:
         return reject(f"vote margin {margin:.3f} < {c.min_vote_margin}")
-    src = _subsample(np.asarray(points_query, float), c.max_points, query)
-    dst = np.asarray(points_match, float)
-    guesses = {"odometry": np.eye(4)}
+    T0 = sim3_inverse(T_world_match) @ T_world_query  # query frame -> match frame, current estimate
+    src = _subsample(remove_isolated(np.asarray(points_query, float)), c.max_points, query)
+    dst = remove_isolated(np.asarray(points_match, float))
+    guesses = {"odometry": T0}
     n_planar = 0
     if chip_uv is not None and tile_uv is not None and len(chip_uv) >= 2:
         T2, inl = planar_ransac(np.asarray(chip_uv, float), np.asarray(tile_uv, float),
-                                c.ransac_radius_tiles * unit, c.ransac_iterations, seed=query * 7919 + match)
+                                c.ransac_radius_tiles * tile_size, c.ransac_iterations, seed=query * 7919 + match)
         n_planar = int(inl.sum())
         if n_planar >= c.min_planar_inliers:
-            guesses["planar"] = planar_to_world(plane, T2)
-    # cheap early exit: footprints further apart than the search reaches (most wrong candidates)
-    reach = (c.search_max_shift_tiles + c.icp_radius_tiles) * unit
-    c_dst = plane.to_canonical(dst)
-    lo, hi = c_dst[:, :2].min(0) - reach, c_dst[:, :2].max(0) + reach
-    if not any(np.any(np.all((uv >= lo) & (uv <= hi), axis=1))
-               for uv in (plane.to_canonical(transform_points(G, src))[:, :2] for G in guesses.values())):
-        return reject("footprints too far apart in the current estimate", planar_inliers=n_planar)
+            guesses["planar"] = sim3_inverse(T_world_match) @ planar_to_world(plane, T2) @ T_world_query
+    up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal
+    found, distinct = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
+                                        bounds.max_translation / float(s_m), c.search_peaks, c.search)
+    for k, (G, _) in enumerate(found):
+        guesses[f"search_{k + 1}"] = G
     tree = cKDTree(dst)
-    h_dst = c_dst[:, 2]
-    ground = float(np.median(h_dst))
-    struct_dst = dst[h_dst > ground + c.structure_height_tiles * unit]
-    struct_tree = cKDTree(struct_dst) if len(struct_dst) >= c.min_structure_points else None
-    peaks = dem_search(src, dst, plane, ground, c.structure_height_tiles * unit, c.search_cell_tiles * unit,
-                       c.search_max_yaw_deg, c.search_yaw_step_deg, c.search_max_shift_tiles * unit, c.search_peaks)
-    for k, (G, _) in enumerate(peaks):
-        guesses["dem_search" if k == 0 else f"dem_search_{k + 1}"] = G
-    alternatives = {f"dem_search_{k + 1}" for k in range(1, len(peaks))}
     # a guess is worth refining only if enough of the query lies within the ICP's first radius
     guesses = {k: G for k, G in guesses.items()
                if np.isfinite(tree.query(transform_points(G, src), distance_upper_bound=c.icp_radius_tiles * unit)[0]
                               ).mean() >= 0.5 * c.min_overlap}
     if not guesses:
         return reject(f"overlap < {0.5 * c.min_overlap:.2f} at every initial guess", planar_inliers=n_planar)
-    radii = np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations) * unit
+    level = up_frame(up_m)  # the match's frame levelled: height is the last coordinate
+    levelled_dst = dst @ level.T
+    h_dst = levelled_dst[:, 2]
+    ground = float(np.percentile(h_dst, c.ground_percentile))
+    is_structure = h_dst > ground + c.structure_height_tiles * unit
+    struct_tree = cKDTree(dst[is_structure]) if is_structure.sum() >= c.min_structure_points else None
+    radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
+                  [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
     r_in = c.inlier_radius_tiles * unit
     normals = point_normals(dst, tree, c.normals_k)
-    best = None
+    refined = []
+    src_centroid = transform_points(T_world_query, src.mean(0)[None])[0]
     for name, G in guesses.items():
-        g_src = transform_points(G, src)
-        T, H, centre = icp_point_to_plane(g_src, tree, dst, normals, radii)
-        T = T @ G
-        cur = transform_points(T, src)
+        T, H, centre = icp_point_to_plane(transform_points(G, src), tree, dst, normals, radii, c.icp_scale_rounds)
+        cur = transform_points(T @ G, src)
         d, _ = tree.query(cur, distance_upper_bound=r_in)
         inl = np.isfinite(d)
-        overlap = float(inl.mean())
         residual = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
-        h = plane.to_canonical(cur)[:, 2]
-        struct_src = cur[h > ground + c.structure_height_tiles * unit]
+        struct_src = cur[(cur @ level.T)[:, 2] > ground + c.structure_height_tiles * unit]
+        s_overlap = 0.0
         if struct_tree is not None and len(struct_src) >= c.min_structure_points:
-            ds, _ = struct_tree.query(struct_src, distance_upper_bound=r_in)
-            s_overlap = float(np.isfinite(ds).mean())
-        else:
-            s_overlap = 0.0
-        if name in alternatives and s_overlap < c.alternative_min_structure_overlap:
-            continue  # a weaker correlation peak has to show more structure than the primary guesses
-        cand = (s_overlap, overlap, residual, T, name, H, centre)
-        if best is None or (cand[0], cand[1]) > (best[0], best[1]):
-            best = cand
-    if best is None:
-        return reject(f"structure overlap < {c.alternative_min_structure_overlap} at every DEM-search peak",
-                      planar_inliers=n_planar)
-    s_overlap, overlap, residual, C, name, H, centre = best
-    ev = np.linalg.eigvalsh(plane.R[:2] @ H[3:6, 3:6] @ plane.R[:2].T)  # in-plane translation information
+            s_overlap = float(np.isfinite(struct_tree.query(struct_src, distance_upper_bound=r_in)[0]).mean())
+        agree, cells = free_space_agreement(cur @ level.T, levelled_dst, c.agreement_cell_tiles * unit,
+                                            ground + c.structure_height_tiles * unit)
+        if cells < c.min_agreement_cells:
+            agree = 0.0
+        prior = _drift_prior(T_world_match @ T @ G @ sim3_inverse(T_world_query), src_centroid, bounds)
+        refined.append((agree * s_overlap * prior, s_overlap, float(inl.mean()), residual, T, G, name, H, centre,
+                        agree, cells))
+        log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
+                  query, match, name, agree, cells, s_overlap, refined[-1][2])
+    refined.sort(key=lambda r: (-r[0], -r[2]))
+    _, s_overlap, overlap, residual, T_icp, G, name, H, centre, agree, cells = refined[0]
+    Z = T_icp @ G  # the measurement: query frame -> match frame
+    ev = np.linalg.eigvalsh(level[:2] @ H[3:6, 3:6] @ level[:2].T)  # in-plane translation information
     constraint = float(ev[0] / max(ev[1], 1e-12))
-    kw = dict(overlap=overlap, structure_overlap=s_overlap, residual=residual, planar_inliers=n_planar, guess=name,
-              constraint_ratio=constraint)
-    s, _, _ = decompose_sim3(C)
-    if abs(np.log(s)) > c.max_scale_change:
-        return reject(f"scale change {float(s):.2f} too large", **kw)
+    kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
+              distinctiveness=distinct,
+              residual=residual * float(s_m),
+              planar_inliers=n_planar, guess=name, constraint_ratio=constraint)
+    C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
+    s_c, _, _ = decompose_sim3(C)
+    centroid = transform_points(T_world_query, src.mean(0)[None])[0]
+    moved = float(np.linalg.norm(transform_points(C, centroid[None])[0] - centroid))
     if overlap < c.min_overlap:
         return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
     if s_overlap < c.min_structure_overlap:
         return reject(f"structure overlap {s_overlap:.2f} < {c.min_structure_overlap}", **kw)
+    if agree < c.min_agreement:
+        return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
     if residual > c.max_residual_tiles * unit:
-        return reject(f"residual {residual:.3f} > {c.max_residual_tiles * unit:.3f}", **kw)
-    T_mq = sim3_inverse(T_world_match) @ C @ T_world_query
-    info = loop_information(H, centre, C, T_world_match, T_world_query, max(residual, c.min_trans_sigma_tiles * unit),
+        return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
+    if abs(np.log(s_c)) > max_log_scale:
+        return reject(f"scale change {float(s_c):.2f} beyond what odometry allows ({np.exp(max_log_scale):.2f})",
+                      **kw)
+    slack = c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may move a little further
+    if moved > bounds.max_translation + slack:
+        return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
+    turned = float(np.degrees(np.arccos(np.clip((np.trace(decompose_sim3(C)[1]) - 1) / 2, -1.0, 1.0))))
+    if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
+        return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
+    for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
+        d_other = np.linalg.norm(transform_points(other[4] @ other[5], src.mean(0)[None]) -
+                                 transform_points(Z, src.mean(0)[None]))
+        if d_other > 2 * c.icp_radius_tiles * unit and other[0] >= c.ambiguity_ratio * refined[0][0]:
+            return reject(f"ambiguous: guess {other[6]} aligns elsewhere nearly as well ({other[0]:.2f} against "
+                          f"{refined[0][0]:.2f})", **kw)
+    info = loop_information(H, centre, T_icp, np.eye(4), G, max(residual, c.min_trans_sigma_tiles * unit),
                             np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
-    return LoopResult(query, match, True, "accepted", T_mq, C, score=score, information=info, **kw)
+    return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)

@@ -107,7 +107,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         scene = make_scene("loop", frames=args.frames, seed=args.seed, width=args.width, height=args.height)
         write_sequence(scene, seq_dir, progress=_progress(len(scene.trajectory), "render"))
     source = open_source(seq_dir)
-    config = RunConfig(backbone=BackboneConfig(name="simulated", seed=args.seed),
+    config = RunConfig(backbone=BackboneConfig(name="simulated", seed=args.seed, noise=args.noise),
                        frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8))
     print(f"synthetic block loop: {len(source)} frames -> {seq_dir}; running VGGT-SLAM++ (simulated backbone, "
           "hog encoder, offline)")
@@ -255,9 +255,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.suite == "loops":
         result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
                                         workdir=str(args.workdir or "runs/bench_loops"),
-                                        fps_repeats=args.fps_repeats, seed=args.seed,
+                                        fps_repeats=args.fps_repeats, seed=args.seed, noise=args.noise,
                                         progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
         summary = _loops_table(result)
+    elif args.suite == "registration":
+        result = benchmarks.bench_registration(frames=args.frames, seed=args.seed,
+                                               workdir=str(args.workdir or "runs/bench_loops"),
+                                               progress=lambda name: print(f"scene {name} ...", file=sys.stderr))
+        summary = "\n".join(
+            f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
+            f"{name}: {r['found']} of {r['positives']} revisits registered correctly from a displaced estimate "
+            f"(recall {r['recall']:.2f}), {r['false_accepted']} of {r['negatives']} other places accepted; "
+            f"{r['seconds_median']:.2f} s per pair (median); outcomes {r['outcomes']}"
+            for name, r in result["scenes"].items())
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
                                          seed=args.seed)
@@ -308,14 +318,15 @@ def _frontend_table(result: dict) -> str:
 
 
 def _loops_table(result: dict) -> str:
-    head = (f"{'scenario':<12}{'submaps':>8}{'ATE odo':>9}{'ATE final':>10}{'reduct.':>8}{'loops':>6}{'false':>6}"
+    head = (f"{'scenario':<12}{'submaps':>8}{'ATE odo':>9}{'drift':>7}{'ATE final':>10}{'reduct.':>8}{'loops':>6}{'false':>6}"
             f"{'s/submap':>9}{'fps on':>8}{'fps off':>8}{'RSS MiB':>8}")
-    rows = [head]
+    rows = [f"simulated backbone, {result.get('noise', 'default')} noise; drift: odometry ATE in % of the path", head]
     for name, r in result["scenarios"].items():
         if "skipped" in r:
             rows.append(f"{name:<12}skipped: {r['skipped']}")
             continue
-        rows.append(f"{name:<12}{r['submaps']:>8}{r['ate_odometry']:>9.3f}{r['ate_final']:>10.3f}"
+        drift = f"{r['drift_pct_path']:.2f}%" if r.get("drift_pct_path") is not None else "-"
+        rows.append(f"{name:<12}{r['submaps']:>8}{r['ate_odometry']:>9.3f}{drift:>7}{r['ate_final']:>10.3f}"
                     f"{100 * r['ate_reduction']:>7.0f}%{r['loops_accepted']:>6}{r['false_loops']:>6}"
                     f"{r['backend_s_per_submap']:>9.3f}{r['frontend_fps_backend_on']:>8.1f}"
                     f"{r['frontend_fps_backend_off']:>8.1f}{r['peak_rss_mb']:>8.0f}")
@@ -323,6 +334,9 @@ def _loops_table(result: dict) -> str:
                 f"{result['false_loops']} (target 0), lowest fps ratio on/off {result['min_fps_ratio']:.2f} "
                 "(target >= 0.9)")
     return "\n".join(rows)
+
+
+NOISE_PROFILES = ("default", "realistic", "zero")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -337,6 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--width", type=int, default=320)
     d.add_argument("--height", type=int, default=240)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--noise", choices=NOISE_PROFILES, default="default",
+                   help="simulated backbone's noise: default, realistic (monocular drift, 1-3 %% of the path) or zero")
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("eval", help="ATE / RPE of an estimated trajectory against ground truth")
@@ -397,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--weights", default="vggt-1b", help="vggt: weights name or path (model.pt, .safetensors, folder)")
     r.add_argument("--device", default="auto", help="vggt: auto, cpu, cuda, cuda:N")
     r.add_argument("--replay", type=Path, help="replay: folder of an earlier run (or its predictions/)")
-    r.add_argument("--noise", choices=("default", "zero"), default="default", help="simulated: noise model")
+    r.add_argument("--noise", choices=NOISE_PROFILES, default="default",
+                   help="simulated: noise profile (default; realistic: monocular drift, 1-3 %% of the path; zero)")
     r.add_argument("--matcher", choices=("exhaustive", "sequential"), default="exhaustive",
                    help="colmap: match all keyframe pairs of a submap (default) or sequentially")
     r.add_argument("--submap-size", type=int, default=32,
@@ -415,8 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_run)
 
     b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency), "
-                                     "covisibility, loops (the whole system on revisits), memory (long run)")
-    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "memory", "frontend"))
+                                     "covisibility, loops (the whole system on revisits), registration (loop "
+                                     "registration from a displaced estimate), memory (long run), frontend")
+    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "registration", "memory", "frontend"))
     b.add_argument("--runs", type=int, default=5, help="frontend: runs per sequence, seeds 0..N-1 (default 5)")
     b.add_argument("--data", type=Path, help="frontend: folder with euroc_mh05_sample/ and strecha_castle_p30_loop/ "
                                              "(default: ../shared/data when present)")
@@ -426,14 +444,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help="frontend: colmap on one thread (default; bit-identical runs per seed)")
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
-    b.add_argument("--frames", type=int, default=600, help="covisibility, loops: frames per synthetic sequence")
+    b.add_argument("--frames", type=int, default=600, help="covisibility, loops, registration: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],
                    help="loops: also drive a camera along this trajectory file (TUM, KITTI or EuRoC); repeatable")
     b.add_argument("--fps-repeats", type=int, default=3,
                    help="loops: runs with and without the back-end per scenario for the fps medians")
+    b.add_argument("--noise", choices=NOISE_PROFILES, default="default",
+                   help="loops: the simulated backbone's noise profile (realistic: monocular drift, 1-3 %% of the path)")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
     b.add_argument("--seed", type=int, default=0,
-                   help="covisibility, loops, memory: world and noise seed (another seed: other solids along the same "
+                   help="covisibility, loops, registration, memory: world and noise seed (another seed: other solids along the same "
                         "trajectories; the figures in docs/ are for seed 0 unless they say otherwise)")
     b.add_argument("--workdir", type=Path, default=None,
                    help="where rendered sequences and runs are kept (default: runs/bench_<suite>)")

@@ -1,0 +1,271 @@
+"""Estimate-free alignment of two submaps: the first step of loop registration (our decision; the paper
+registers loops from the current estimate).
+
+Under realistic drift the current estimate of a revisit can be tens of metres, tens of degrees and tens of
+percent in scale off, so the candidate alignments come from the two submaps' own data, in their own
+frames:
+
+1. Each cloud is *levelled* by its up direction (the ground plane's normal in that submap's frame); its
+   ground level is a low percentile of its heights.
+2. Its points are binned into ``cell``-sized ground cells (:class:`CellMap`): a cell is *structure*
+   when its highest point stands ``height`` above the ground, *clear* when it was observed and neither it
+   nor a neighbour is structure.
+3. For every yaw (the full circle) and scale (within what odometry allows), the query's cells are
+   rotated and scaled about their centroid and slid over the match's, at every shift where the two
+   overlap (OpenCV ``matchTemplate``, unnormalised correlations of binary images):
+   ``score = agreements - conflicts``; agreements = query structure on match structure (one cell of
+   tolerance), conflicts = query structure on the match's clear ground plus match structure on the
+   query's clear ground. Free space is evidence: a wrong place or a shrunken query puts buildings where
+   the other submap saw open ground, so the score does not favour small scales as an occupancy
+   correlation does.
+4. The best alignments are refined at half the cell and ranked again by :func:`free_space_agreement`
+   in 3-D (heights scale with the query: a shrunken query's buildings fall under the structure height),
+   and ICP refines the survivors (:mod:`vggt_slam_pp.backend.registration`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vggt_slam_pp.geometry.lie import transform_points
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    cell_tiles: float = 0.5  # fine cell; the exhaustive pass runs at twice this
+    yaw_step_deg: float = 6.0  # exhaustive pass (the refinement uses half)
+    scale_step: float = 0.08  # log-scale step of the exhaustive pass (the refinement uses half)
+    ground_percentile: float = 20.0
+    structure_height_tiles: float = 0.15
+    min_structure_cells: int = 8
+    candidates_per_scale: int = 3  # the best distinct alignments kept per scale of the exhaustive pass
+    refine: int = 8  # of all those, the best (by score) refined at the fine cell
+    min_agreement_cells: int = 10  # free-space agreement on fewer cells counts as none
+    distinct_tiles: float = 1.0  # rivals of the best alignment: landing this far away (x3) or turned > 20 deg
+
+
+def up_frame(up: np.ndarray) -> np.ndarray:
+    """A rotation [3,3] taking the unit vector ``up`` to +z (the rest of the frame is arbitrary)."""
+    z = np.asarray(up, float) / np.linalg.norm(up)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[0]) > 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def cell_heights(levelled: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Highest point per ``cell``-sized ground cell of a levelled cloud [N,3] (height = last coordinate):
+    (sorted cell keys [K] int64, tops [K])."""
+    ij = np.floor(levelled[:, :2] / cell).astype(np.int64)
+    keys = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
+    order = np.lexsort((levelled[:, 2], keys))  # by key, highest last
+    keys, h = keys[order], levelled[order, 2]
+    last = np.r_[keys[1:] != keys[:-1], True]
+    return keys[last], h[last]
+
+
+def free_space_agreement(src_levelled: np.ndarray, dst_levelled: np.ndarray, cell: float, above: float,
+                         max_pixels: int = 4_000_000) -> tuple[float, int]:
+    """Consistency of two aligned, levelled clouds [N,3], [M,3] (height last, same frame) in
+    ``cell``-sized ground cells: a cell is structure where its top is higher than ``above``. Returns
+    (agreements / (agreements + conflicts), agreements + conflicts): agreements = structure cells of
+    either side with structure of the other within one cell; conflicts = structure cells of either side
+    that the other observed as clear ground (no structure within one cell). Different tops of the same
+    building are no conflict (a near camera does not see the roof); a building where the other submap saw
+    open ground is."""
+    both = np.concatenate([src_levelled[:, :2], dst_levelled[:, :2]])
+    lo = both.min(0) - 2 * cell
+    shape = tuple(int(x) for x in np.ceil((both.max(0) - lo) / cell) + 2)
+    if shape[0] * shape[1] > max_pixels:
+        return 0.0, 0
+    imgs = []
+    for cloud in (src_levelled, dst_levelled):
+        struct = _raster(cloud[cloud[:, 2] > above, :2], lo, cell, shape)
+        imgs.append((struct, cv2.dilate(struct, _KERNEL), _clear(_raster(cloud[:, :2], lo, cell, shape), struct)))
+    (s_s, s_near, s_clear), (d_s, d_near, d_clear) = imgs
+    agree = float((s_s * d_near).sum() + (d_s * s_near).sum())
+    conflict = float((s_s * d_clear).sum() + (d_s * s_clear).sum())
+    total = agree + conflict
+    return (agree / total if total else 0.0), int(total)
+
+
+@dataclass(frozen=True)
+class CellMap:
+    """A levelled cloud's observed cells: centres [K,2] and whether each is structure [K]."""
+
+    uv: np.ndarray
+    structure: np.ndarray
+
+    @classmethod
+    def of(cls, levelled: np.ndarray, cell: float, above: float) -> CellMap:
+        keys, top = cell_heights(levelled, cell)
+        ij = np.c_[keys >> 32, (keys & 0xFFFFFFFF).astype(np.int32)]  # the low word back to signed
+        return cls((ij + 0.5) * cell, top > above)
+
+
+def _raster(uv: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    ij = np.floor((uv - lo) / cell).astype(np.int64)
+    keep = np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)
+    img = np.zeros(shape, np.float32)
+    img[ij[keep, 0], ij[keep, 1]] = 1.0
+    return img
+
+
+_KERNEL = np.ones((3, 3), np.uint8)
+
+
+def _clear(observed: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    return observed * (1.0 - cv2.dilate(structure, _KERNEL))
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A 2-D similarity ``uv_match = A[:, :2] @ uv_query + A[:, 2]`` of levelled cells, with its score."""
+
+    score: float
+    A: np.ndarray  # [2,3]
+    yaw_deg: float
+    scale: float
+
+
+def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.ndarray, scales: np.ndarray,
+                     count: int = 3, near: tuple[np.ndarray, float] | None = None,
+                     max_pixels: int = 4_000_000) -> list[Alignment]:
+    """The ``count`` best distinct alignments of ``query``'s cells onto ``match``'s over every yaw in
+    ``yaws_deg``, scale in ``scales`` (about the query's structure centroid) and every overlapping shift,
+    by ``agreements - conflicts`` (module docstring), best first. ``near`` = (point [2], radius) keeps
+    only shifts that put the query's centroid within ``radius`` of ``point``. Alternatives closer than
+    three cells (at a yaw within 20 deg) to a better one are dropped."""
+    if not query.structure.any() or not match.structure.any():
+        return []
+    centre = query.uv[query.structure].mean(0)
+    reach = float(np.max(np.linalg.norm(query.uv - centre, axis=1))) * float(np.max(scales)) + cell
+    pad = int(np.ceil(2 * reach / cell)) + 1
+    m_lo = match.uv.min(0) - pad * cell
+    m_shape = tuple(int(x) for x in np.ceil((match.uv.max(0) - m_lo) / cell) + pad + 1)
+    if m_shape[0] * m_shape[1] > max_pixels:  # footprints this large are not one place
+        return []
+    b_struct = _raster(match.uv[match.structure], m_lo, cell, m_shape)
+    b_near = cv2.dilate(b_struct, _KERNEL)
+    b_clear = _clear(_raster(match.uv, m_lo, cell, m_shape), b_struct)
+    found: list[Alignment] = []
+    for s in scales:
+        for yaw in yaws_deg:
+            a = np.radians(yaw)
+            sR = float(s) * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+            rs = (query.uv - centre) @ sR.T
+            lo = rs.min(0)
+            shape = tuple(int(x) for x in np.ceil((rs.max(0) - lo) / cell) + 1)
+            # window positions (i, j): the query's centroid lands at m_lo - lo + (i, j) cell
+            i0, i1 = np.zeros(2, int), np.array(m_shape) - np.array(shape)
+            if near is not None:
+                i0 = np.maximum(i0, np.floor((near[0] - near[1] - m_lo + lo) / cell).astype(int))
+                i1 = np.minimum(i1, np.ceil((near[0] + near[1] - m_lo + lo) / cell).astype(int))
+            if np.any(i1 < i0):
+                continue
+            a_struct = _raster(rs[query.structure], lo, cell, shape)
+            a_clear = _clear(_raster(rs, lo, cell, shape), a_struct)
+            win = (slice(i0[0], i1[0] + shape[0]), slice(i0[1], i1[1] + shape[1]))
+            score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
+                     - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
+                     - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
+            is_max = (score >= cv2.dilate(score, _KERNEL)) & (score > 0)
+            ii, jj = np.nonzero(is_max)
+            for k in np.argsort(-score[ii, jj])[: 2 * count]:
+                b = m_lo + (np.array([ii[k], jj[k]]) + i0) * cell - lo - sR @ centre
+                found.append(Alignment(float(score[ii[k], jj[k]]), np.c_[sR, b], float(yaw), float(s)))
+    found.sort(key=lambda g: -g.score)
+    out: list[Alignment] = []
+    for g in found:
+        at = g.A[:, :2] @ centre + g.A[:, 2]
+        if all(np.linalg.norm(at - (o.A[:, :2] @ centre + o.A[:, 2])) >= 3 * cell
+               or abs((g.yaw_deg - o.yaw_deg + 180) % 360 - 180) > 20 for o in out):
+            out.append(g)
+            if len(out) == count:
+                break
+    return out
+
+
+def _lift(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_dst: np.ndarray, unit: float,
+                      prior: np.ndarray, max_log_scale: float, max_yaw_deg: float, max_shift: float, count: int,
+                      config: SearchConfig | None = None) -> tuple[list[tuple[np.ndarray, float]], float]:
+    """Up to ``count`` candidate similarities ``T`` [4,4] with ``T src ~ dst`` from the two clouds (each in
+    its own frame; ``unit``: one tile in ``dst``'s frame), best first, each with its free-space
+    agreement (module docstring), and the search's distinctiveness (:func:`_distinctiveness`).
+
+    The search covers what odometry can have drifted away from ``prior`` (the current estimate's
+    ``T``): yaws within ``max_yaw_deg`` (180: the full circle), scales within ``exp(+-max_log_scale)``
+    and shifts that move the query's centroid by at most ``max_shift`` (``dst`` units; inf: anywhere the
+    two overlap). The result depends on ``prior`` only through these bounds.
+    """
+    c = config or SearchConfig()
+    Rs, Rd = up_frame(up_src), up_frame(up_dst)
+    P = _lift(Rd) @ prior @ _lift(Rs.T)  # the prior between the levelled frames
+    s_p = float(np.cbrt(np.linalg.det(P[:3, :3])))
+    yaw_p = float(np.degrees(np.arctan2(P[1, 0], P[0, 0])))
+    cs = (s_p * src) @ Rs.T  # the query in the match's unit
+    cd = dst @ Rd.T
+    gs, gd = (float(np.percentile(x[:, 2], c.ground_percentile)) for x in (cs, cd))
+    h = c.structure_height_tiles * unit
+    cell = c.cell_tiles * unit
+    maps = {k: (CellMap.of(cs, k, gs + h), CellMap.of(cd, k, gd + h)) for k in (cell, 2 * cell)}
+    if min(m.structure.sum() for m in maps[2 * cell]) < c.min_structure_cells:
+        return [], 0.0
+    n = max(1, int(np.ceil(max_log_scale / c.scale_step)))
+    scales = np.exp(np.linspace(-max_log_scale, max_log_scale, 2 * n + 1))
+    step = 2 * max_log_scale / (2 * n)
+    half = min(float(max_yaw_deg), 180.0)
+    yaws = yaw_p + (np.arange(-180.0, 180.0, c.yaw_step_deg) if half >= 180.0 else
+                    np.linspace(-half, half, 2 * max(1, int(np.ceil(half / c.yaw_step_deg))) + 1))
+
+    def near(m: CellMap) -> tuple[np.ndarray, float] | None:
+        if not np.isfinite(max_shift):
+            return None
+        centre = m.uv[m.structure].mean(0)
+        at = P[:2, :2] @ (centre / s_p) + P[:2, 3]  # where the prior puts the query's structure centroid
+        return at, float(max_shift)
+
+    coarse = [g for sc in scales
+              for g in free_space_peaks(*maps[2 * cell], 2 * cell, yaws, np.array([sc]), c.candidates_per_scale,
+                                        near=near(maps[2 * cell][0]))]
+    coarse = sorted(coarse, key=lambda g: -g.score)
+    q_fine = maps[cell][0]
+    centre = q_fine.uv[q_fine.structure].mean(0)
+    distinct = _distinctiveness(coarse, centre, 3 * c.distinct_tiles * unit) if coarse else 0.0
+    coarse = coarse[: c.refine]
+    ranked = []
+    for g in coarse:
+        fine = free_space_peaks(*maps[cell], cell,
+                                g.yaw_deg + np.arange(-1.0, 1.01, 0.5) * c.yaw_step_deg / 2,
+                                g.scale * np.exp(np.arange(-1.0, 1.01, 0.5) * step / 2), count=1,
+                                near=(g.A[:, :2] @ centre + g.A[:, 2], 3 * cell))
+        best = fine[0] if fine else g
+        G = np.eye(4)
+        G[:2, :2], G[:2, 3] = best.A[:, :2], best.A[:, 2]
+        G[2, 2], G[2, 3] = best.scale, gd - best.scale * gs
+        agree, cells = free_space_agreement(transform_points(G, cs), cd, cell, gd + h)
+        T = _lift(Rd.T) @ G @ _lift(Rs) @ np.diag([s_p, s_p, s_p, 1.0])
+        ranked.append((agree if cells >= c.min_agreement_cells else 0.0, best.score, T))
+    ranked.sort(key=lambda r: (-r[0], -r[1]))
+    return [(T, agree) for agree, _, T in ranked[:count]], distinct
+
+
+def _distinctiveness(peaks: list[Alignment], centre: np.ndarray, radius: float) -> float:
+    """Score of the best alignment over the best one that lands the query's centroid more than
+    ``radius`` away or turns it by more than 20 deg more (inf without such a rival): the alignment-level
+    ratio test. Random look-alikes come in crowds of similar scores; a true revisit stands out."""
+    best = peaks[0]
+    at = best.A[:, :2] @ centre + best.A[:, 2]
+    for g in peaks[1:]:
+        if (np.linalg.norm(g.A[:, :2] @ centre + g.A[:, 2] - at) > radius
+                or abs((g.yaw_deg - best.yaw_deg + 180) % 360 - 180) > 20):
+            return best.score / max(g.score, 1e-9)
+    return float("inf")

@@ -39,6 +39,7 @@ from vggt_slam_pp.backend.registration import (
     LoopBounds,
     LoopResult,
     RegistrationConfig,
+    correction_size,
     drift_bounds,
     mutual_matches,
     register_loop,
@@ -332,12 +333,9 @@ class Backend:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`_bounds`) closes
         a consistent cycle with the odometry chain itself: it needs no partner loop."""
         b = self._bounds(r.match, r.query)
-        s, R, _ = decompose_sim3(r.correction)
         centroid = transform_points(self.graph.poses[r.query], self._centroid[r.query][None])[0]
-        moved = float(np.linalg.norm(transform_points(r.correction, centroid[None])[0] - centroid))
-        angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-        return (abs(np.log(s)) <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3
-                and moved <= b.max_translation / 3)
+        log_s, angle, moved = correction_size(r.correction, centroid)
+        return log_s <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3 and moved <= b.max_translation / 3
 
     def _path(self, a: int, b: int) -> float:
         """Length of the chain of submap origins between submaps ``a`` and ``b`` in the current estimate."""

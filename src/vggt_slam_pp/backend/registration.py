@@ -305,17 +305,6 @@ def correction_size(C: np.ndarray, point: np.ndarray) -> tuple[float, float, flo
     return abs(float(np.log(s))), angle, float(np.linalg.norm(transform_points(C, point[None])[0] - point))
 
 
-def _drift_prior(C: np.ndarray, point: np.ndarray, bounds: LoopBounds) -> float:
-    """How plausible a correction is under the drift model (bounds = 3 sigma): a heavy-tailed
-    ``1 / (1 + d^2 / 9)`` of its normalised size ``d``. Among alignments the submaps support about equally
-    (repetitive or sparse structure), the one odometry explains better wins; a far one needs clearly
-    better evidence. Verification does not use it."""
-    log_s, angle, moved = correction_size(C, point)
-    d2 = sum((3 * x / max(b, 1e-9)) ** 2 for x, b in ((log_s, bounds.max_log_scale), (angle, bounds.max_yaw_deg),
-                                                      (moved, bounds.max_translation)) if np.isfinite(b))
-    return 1.0 / (1.0 + d2 / 9.0)
-
-
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
                   T_world_query: np.ndarray, T_world_match: np.ndarray, plane: GroundPlane, tile_size: float,
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
@@ -383,7 +372,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     r_in = c.inlier_radius_tiles * unit
     normals = point_normals(dst, tree, c.normals_k)
     refined = []
-    src_centroid = transform_points(T_world_query, src.mean(0)[None])[0]
     for name, G in guesses.items():
         T, H, centre = icp_point_to_plane(transform_points(G, src), tree, dst, normals, radii, c.icp_scale_rounds)
         cur = transform_points(T @ G, src)
@@ -398,9 +386,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                                             ground + c.structure_height_tiles * unit)
         if cells < c.min_agreement_cells:
             agree = 0.0
-        prior = _drift_prior(T_world_match @ T @ G @ sim3_inverse(T_world_query), src_centroid, bounds)
-        refined.append((agree * s_overlap * prior, s_overlap, float(inl.mean()), residual, T, G, name, H, centre,
-                        agree, cells))
+        refined.append((agree * s_overlap, s_overlap, float(inl.mean()), residual, T, G, name, H, centre, agree,
+                        cells))
         log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
                   query, match, name, agree, cells, s_overlap, refined[-1][2])
     refined.sort(key=lambda r: (-r[0], -r[2]))
@@ -413,9 +400,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
               residual=residual * float(s_m),
               planar_inliers=n_planar, guess=name, constraint_ratio=constraint)
     C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
-    s_c, _, _ = decompose_sim3(C)
-    centroid = transform_points(T_world_query, src.mean(0)[None])[0]
-    moved = float(np.linalg.norm(transform_points(C, centroid[None])[0] - centroid))
+    log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
     if overlap < c.min_overlap:
         return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
     if s_overlap < c.min_structure_overlap:
@@ -424,13 +409,12 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
     if residual > c.max_residual_tiles * unit:
         return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
-    if abs(np.log(s_c)) > max_log_scale:
-        return reject(f"scale change {float(s_c):.2f} beyond what odometry allows ({np.exp(max_log_scale):.2f})",
+    if log_s > max_log_scale:
+        return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",
                       **kw)
     slack = c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may move a little further
     if moved > bounds.max_translation + slack:
         return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
-    turned = float(np.degrees(np.arccos(np.clip((np.trace(decompose_sim3(C)[1]) - 1) / 2, -1.0, 1.0))))
     if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
         return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
     for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous

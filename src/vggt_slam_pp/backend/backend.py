@@ -265,11 +265,8 @@ class Backend:
             if not r.accepted:
                 self.loops.append(r)
                 continue
-            Z0 = sim3_inverse(T_m) @ self.graph.poses[sid]
-            sE, RE, tE = decompose_sim3(sim3_inverse(Z0) @ r.T_match_query)
-            log.debug("verified %d->%d: vs estimate scale %.3f angle %.1f t %.2f guess %s distinct %.2f", sid, match, sE,
-                      np.degrees(np.arccos(np.clip((np.trace(RE) - 1) / 2, -1, 1))), np.linalg.norm(tE), r.guess,
-                      r.distinctiveness)
+            log.debug("verified %d->%d: correction |log s| %.3f, %.1f deg, moves it %.2f", sid, match,
+                      *correction_size(r.correction, transform_points(self.graph.poses[sid], points.mean(0)[None])[0]))
             partners = self._consistent(r)
             if self.config.loop_consistency and not partners and not self._odometry_consistent(r):
                 self._pending.append(len(self.loops))

@@ -118,15 +118,13 @@ class LoopResult:
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
-    distinctiveness: float = 0.0  # the search's best alignment score over its best distinct rival
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
-                "agreement": self.agreement, "agreement_cells": self.agreement_cells,
-                "distinctiveness": self.distinctiveness}
+                "agreement": self.agreement, "agreement_cells": self.agreement_cells}
 
 
 def drift_bounds(config: RegistrationConfig, submaps: int, path: float, tile_size: float,
@@ -305,6 +303,24 @@ def correction_size(C: np.ndarray, point: np.ndarray) -> tuple[float, float, flo
     return abs(float(np.log(s))), angle, float(np.linalg.norm(transform_points(C, point[None])[0] - point))
 
 
+@dataclass(frozen=True)
+class _Fit:
+    """One initial guess refined by ICP, with its verification figures."""
+
+    rank: float  # free-space agreement x structure overlap: which fit the loop takes
+    structure_overlap: float
+    overlap: float
+    residual: float  # match-frame units
+    Z: np.ndarray  # T_icp @ G: query frame -> match frame
+    T_icp: np.ndarray
+    G: np.ndarray
+    guess: str
+    H: np.ndarray  # ICP information (match frame, about ``centre``)
+    centre: np.ndarray
+    agreement: float
+    cells: int
+
+
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
                   T_world_query: np.ndarray, T_world_match: np.ndarray, plane: GroundPlane, tile_size: float,
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
@@ -350,8 +366,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         if n_planar >= c.min_planar_inliers:
             guesses["planar"] = sim3_inverse(T_world_match) @ planar_to_world(plane, T2) @ T_world_query
     up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal
-    found, distinct = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
-                                        bounds.max_translation / float(s_m), c.search_peaks, c.search)
+    found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
+                              bounds.max_translation / float(s_m), c.search_peaks, c.search)
     for k, (G, _) in enumerate(found):
         guesses[f"search_{k + 1}"] = G
     tree = cKDTree(dst)
@@ -386,19 +402,19 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                                             ground + c.structure_height_tiles * unit)
         if cells < c.min_agreement_cells:
             agree = 0.0
-        refined.append((agree * s_overlap, s_overlap, float(inl.mean()), residual, T, G, name, H, centre, agree,
-                        cells))
+        refined.append(_Fit(agree * s_overlap, s_overlap, float(inl.mean()), residual, T @ G, T, G, name, H, centre,
+                            agree, cells))
         log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
-                  query, match, name, agree, cells, s_overlap, refined[-1][2])
-    refined.sort(key=lambda r: (-r[0], -r[2]))
-    _, s_overlap, overlap, residual, T_icp, G, name, H, centre, agree, cells = refined[0]
-    Z = T_icp @ G  # the measurement: query frame -> match frame
+                  query, match, name, agree, cells, s_overlap, refined[-1].overlap)
+    refined.sort(key=lambda f: (-f.rank, -f.overlap))
+    best = refined[0]
+    s_overlap, overlap, residual, Z, agree, cells = (best.structure_overlap, best.overlap, best.residual, best.Z,
+                                                      best.agreement, best.cells)
+    H = best.H
     ev = np.linalg.eigvalsh(level[:2] @ H[3:6, 3:6] @ level[:2].T)  # in-plane translation information
     constraint = float(ev[0] / max(ev[1], 1e-12))
     kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
-              distinctiveness=distinct,
-              residual=residual * float(s_m),
-              planar_inliers=n_planar, guess=name, constraint_ratio=constraint)
+              residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint)
     C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
     log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
     if overlap < c.min_overlap:
@@ -418,11 +434,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
         return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
     for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
-        d_other = np.linalg.norm(transform_points(other[4] @ other[5], src.mean(0)[None]) -
-                                 transform_points(Z, src.mean(0)[None]))
-        if d_other > 2 * c.icp_radius_tiles * unit and other[0] >= c.ambiguity_ratio * refined[0][0]:
-            return reject(f"ambiguous: guess {other[6]} aligns elsewhere nearly as well ({other[0]:.2f} against "
-                          f"{refined[0][0]:.2f})", **kw)
-    info = loop_information(H, centre, T_icp, np.eye(4), G, max(residual, c.min_trans_sigma_tiles * unit),
+        d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
+        if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
+            return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
+                          f"{best.rank:.2f})", **kw)
+    info = loop_information(H, best.centre, best.T_icp, np.eye(4), best.G, max(residual, c.min_trans_sigma_tiles * unit),
                             np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
     return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)

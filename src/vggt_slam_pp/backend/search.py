@@ -44,7 +44,6 @@ class SearchConfig:
     candidates_per_scale: int = 3  # the best distinct alignments kept per scale of the exhaustive pass
     refine: int = 8  # of all those, the best (by score) refined at the fine cell
     min_agreement_cells: int = 10  # free-space agreement on fewer cells counts as none
-    distinct_tiles: float = 1.0  # rivals of the best alignment: landing this far away (x3) or turned > 20 deg
 
 
 def up_frame(up: np.ndarray) -> np.ndarray:
@@ -196,10 +195,10 @@ def _lift(R: np.ndarray) -> np.ndarray:
 
 def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_dst: np.ndarray, unit: float,
                       prior: np.ndarray, max_log_scale: float, max_yaw_deg: float, max_shift: float, count: int,
-                      config: SearchConfig | None = None) -> tuple[list[tuple[np.ndarray, float]], float]:
+                      config: SearchConfig | None = None) -> list[tuple[np.ndarray, float]]:
     """Up to ``count`` candidate similarities ``T`` [4,4] with ``T src ~ dst`` from the two clouds (each in
     its own frame; ``unit``: one tile in ``dst``'s frame), best first, each with its free-space
-    agreement (module docstring), and the search's distinctiveness (:func:`_distinctiveness`).
+    agreement (module docstring).
 
     The search covers what odometry can have drifted away from ``prior`` (the current estimate's
     ``T``): yaws within ``max_yaw_deg`` (180: the full circle), scales within ``exp(+-max_log_scale)``
@@ -218,7 +217,7 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     cell = c.cell_tiles * unit
     maps = {k: (CellMap.of(cs, k, gs + h), CellMap.of(cd, k, gd + h)) for k in (cell, 2 * cell)}
     if min(m.structure.sum() for m in maps[2 * cell]) < c.min_structure_cells:
-        return [], 0.0
+        return []
     n = max(1, int(np.ceil(max_log_scale / c.scale_step)))
     scales = np.exp(np.linspace(-max_log_scale, max_log_scale, 2 * n + 1))
     step = 2 * max_log_scale / (2 * n)
@@ -236,11 +235,9 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     coarse = [g for sc in scales
               for g in free_space_peaks(*maps[2 * cell], 2 * cell, yaws, np.array([sc]), c.candidates_per_scale,
                                         near=near(maps[2 * cell][0]))]
-    coarse = sorted(coarse, key=lambda g: -g.score)
+    coarse = sorted(coarse, key=lambda g: -g.score)[: c.refine]
     q_fine = maps[cell][0]
     centre = q_fine.uv[q_fine.structure].mean(0)
-    distinct = _distinctiveness(coarse, centre, 3 * c.distinct_tiles * unit) if coarse else 0.0
-    coarse = coarse[: c.refine]
     ranked = []
     for g in coarse:
         fine = free_space_peaks(*maps[cell], cell,
@@ -255,17 +252,4 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
         T = _lift(Rd.T) @ G @ _lift(Rs) @ np.diag([s_p, s_p, s_p, 1.0])
         ranked.append((agree if cells >= c.min_agreement_cells else 0.0, best.score, T))
     ranked.sort(key=lambda r: (-r[0], -r[1]))
-    return [(T, agree) for agree, _, T in ranked[:count]], distinct
-
-
-def _distinctiveness(peaks: list[Alignment], centre: np.ndarray, radius: float) -> float:
-    """Score of the best alignment over the best one that lands the query's centroid more than
-    ``radius`` away or turns it by more than 20 deg more (inf without such a rival): the alignment-level
-    ratio test. Random look-alikes come in crowds of similar scores; a true revisit stands out."""
-    best = peaks[0]
-    at = best.A[:, :2] @ centre + best.A[:, 2]
-    for g in peaks[1:]:
-        if (np.linalg.norm(g.A[:, :2] @ centre + g.A[:, 2] - at) > radius
-                or abs((g.yaw_deg - best.yaw_deg + 180) % 360 - 180) > 20):
-            return best.score / max(g.score, 1e-9)
-    return float("inf")
+    return [(T, agree) for agree, _, T in ranked[:count]]

@@ -153,10 +153,10 @@ def _overlap_matrix(footprints: list[set]) -> np.ndarray:
 def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600, width: int = 320,
                        height: int = 240, submap_size: int = 8, tau_disparity: float = 20.0,
                        overlap_threshold: float = 0.3, workdir: str = "runs/bench_covisibility",
-                       seed: int = 0) -> dict:
+                       seed: int = 0, noise: str = "default") -> dict:
     """Covisibility recall and VPR top-1 precision with the ``hog`` encoder on synthetic revisits.
 
-    Each scene runs through the simulated backbone (default noise) with ``submap_size`` keyframes per
+    Each scene runs through the simulated backbone (``noise`` profile) with ``submap_size`` keyframes per
     submap; the DEM layers use the odometry (drifting) world poses. Ground-truth overlap: the share of
     2 m tiles two submaps' noise-free footprints (ground-truth poses) have in common, relative to the
     smaller one, >= ``overlap_threshold``. A revisit query is a submap with a true overlap outside the
@@ -178,7 +178,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
             continue
         idx, gt = source.frame_ground_truth()
         gt_poses = dict(zip(idx.tolist(), gt.poses, strict=True))
-        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise(seed=seed)),
+        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise.profile(noise, seed)),
                       FrontendConfig(keyframes=KeyframeConfig(tau_disparity=tau_disparity), submap_size=submap_size))
         for i in range(len(source)):
             fe.process(source[i])
@@ -214,7 +214,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
     recalls = [r["covisibility_recall"] for r in results.values() if r.get("covisibility_recall") is not None]
     precs = [r["vpr_top1_precision"] for r in results.values() if r.get("vpr_top1_precision") is not None]
     by_votes = [r["covisibility_recall_votes"] for r in results.values() if r.get("covisibility_recall") is not None]
-    return {"scenes": results, "encoder": "hog",
+    return {"scenes": results, "encoder": "hog", "noise": noise,
             "covisibility_recall": float(np.mean(recalls)) if recalls else None,
             "covisibility_recall_votes": float(np.mean(by_votes)) if by_votes else None,
             "vpr_top1_precision": float(np.mean(precs)) if precs else None,

@@ -9,7 +9,8 @@
 * ``dem/``: the fused DEM (colour and grayscale PNG, ``.npz`` with heights, mpp, plane, origin);
 * ``trajectory.png``: odometry, corrected and (when known) ground truth, seen from above.
 
-Returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected``,
+Returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected`` (of which
+``loops_pending`` and ``loops_dropped_by_graph``),
 ``backend_s_per_submap``, ``backend_timings``.
 """
 
@@ -49,6 +50,10 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
     accepted = [c for c in backend.loops if c["accepted"]]
     fields: dict = {
         "loops_accepted": len(accepted), "loops_rejected": len(backend.loops) - len(accepted),
+        # of the rejected: verified geometrically but left without a cycle-consistent partner, or switched
+        # off by the final robust solve (docs/backend.md, "loop acceptance")
+        "loops_pending": sum(c["reason"].startswith("verified, but") for c in backend.loops),
+        "loops_dropped_by_graph": sum(c["reason"].startswith("rejected by the pose graph") for c in backend.loops),
         "backend_s_per_submap": float(np.mean(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_s_per_submap_max": float(np.max(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_timings": backend.timings,

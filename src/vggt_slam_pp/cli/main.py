@@ -195,7 +195,9 @@ def _print_summary(report: dict, out) -> None:
         names = "f cx cy k1 k2" if cam.get("model") == "RADIAL" else "fx fy cx cy k1 k2 p1 p2"
         print(f"camera ({cam['source']}): {names} = " + " ".join(f"{v:.4g}" for v in cam["params"]))
     if "loops_accepted" in report:
-        print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected; "
+        print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected (of which "
+              f"{report.get('loops_pending', 0)} verified without a consistent second loop, "
+              f"{report.get('loops_dropped_by_graph', 0)} dropped by the pose graph); "
               f"back-end {report['backend_s_per_submap'] * 1000:.0f} ms per submap")
     if "ate_rmse_odometry" in report:
         line = f"ATE rmse (Sim(3)-aligned, keyframes): odometry {report['ate_rmse_odometry']:.4f}"
@@ -275,7 +277,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
                    f"{result['rss_mb_at_50']:.0f} MiB at 50 submaps, {result['rss_mb_at_300']:.0f} MiB at 300: "
                    f"growth {100 * result['growth']:.1f} % (target < 20 %)")
     else:
-        result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed,
+        result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed, noise=args.noise,
                                                workdir=str(args.workdir or "runs/bench_covisibility"))
         summary = "\n".join(
             f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
@@ -450,7 +452,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--fps-repeats", type=int, default=3,
                    help="loops: runs with and without the back-end per scenario for the fps medians")
     b.add_argument("--noise", choices=NOISE_PROFILES, default="default",
-                   help="loops: the simulated backbone's noise profile (realistic: monocular drift, 1-3 %% of the path)")
+                   help="loops, covisibility: the simulated backbone's noise profile (realistic: monocular drift, "
+                        "1-3 %% of the path)")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
     b.add_argument("--seed", type=int, default=0,
                    help="covisibility, loops, registration, memory: world and noise seed (another seed: other solids along the same "

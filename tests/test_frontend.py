@@ -225,6 +225,14 @@ def test_realistic_noise_drifts_in_scale_as_a_random_walk(loop_sequence):
     mid = np.linalg.norm(c_pred[1]) / np.linalg.norm(c_true[1])
     assert abs(np.log(mid)) == pytest.approx(abs(np.log(ratio)) / 3, rel=0.05)  # grows linearly along the submap
     assert np.allclose(SimulatedBackbone(poses, noise).predict(frames).points[2], pred.points[2])  # seeded
+    # the link error: once the first frame belongs to a committed submap, its points (only) are off
+    link = SimulatedBackbone(poses, dataclasses.replace(SimulatedNoise.zero(3), overlap_scale_error=0.1))
+    alone = link.predict(frames)
+    link.committed([0, 1, 2])
+    linked = link.predict(frames)
+    ratio = np.linalg.norm(linked.points[0], axis=1) / np.linalg.norm(alone.points[0], axis=1)
+    assert np.allclose(ratio, ratio[0]) and abs(np.log(ratio[0])) > 1e-3
+    assert np.allclose(linked.points[1], alone.points[1]) and np.allclose(linked.T_cam_submap, alone.T_cam_submap)
 
 
 def test_realistic_profile_fails_some_submaps_into_degraded_edges(loop_sequence):

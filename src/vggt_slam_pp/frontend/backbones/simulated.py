@@ -125,11 +125,11 @@ class SimulatedBackbone(Backbone):
         T_world_cam0 = self.gt[frames[0].index]
         scale = float(np.exp(rng.normal(0.0, n.scale_error))) if n.scale_error else 1.0
         g_drift, w_drift = self._drift(rng, T_world_cam0[:3, :3].T)
-        link = np.eye(4)  # applied to the first frame's points (camera frame = submap frame) when linked
+        link = np.eye(3)  # applied to the first frame's points (camera frame = submap frame) when linked
         if frames[0].index in self._committed and (n.overlap_scale_error or n.overlap_rot_deg):
             g = float(rng.normal(0.0, n.overlap_scale_error)) if n.overlap_scale_error else 0.0
             w = np.radians(rng.normal(0.0, n.overlap_rot_deg)) if n.overlap_rot_deg else 0.0
-            link[:3, :3] = float(np.exp(g)) * so3_exp(T_world_cam0[:3, :3].T @ np.array([0.0, 0.0, w]))
+            link = float(np.exp(g)) * so3_exp(T_world_cam0[:3, :3].T @ np.array([0.0, 0.0, w]))
         S = len(frames)
         valid = np.ones(S, bool)
         if n.failure_rate and self._committed:
@@ -166,7 +166,7 @@ class SimulatedBackbone(Backbone):
                 T = se3_inverse(T_submap_cam)
             p, w, x, k = dense_observations(T_submap_cam, depth, c, K, np.eye(3), self.stride)
             if i == 0:
-                p = (p @ link[:3, :3].T).astype(np.float32)
+                p = (p @ link.T).astype(np.float32)
             T_scaled = T.copy()
             T_scaled[:3, 3] *= scale
             T_cam_submap[i] = T_scaled

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -296,6 +297,11 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
             "targets": {"mean_ate_reduction": 0.5, "false_loops": 0, "min_fps_ratio": 0.9}}
 
 
+def _reason_kind(reason: str) -> str:
+    """A rejection reason without its figures ("structure overlap 0.12 < 0.25" -> "structure overlap")."""
+    return re.split(r"\s(?:x?\d|<|>)", reason.split(":")[0])[0] or reason
+
+
 def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int = 320, height: int = 240,
                        displacement: float = 1.0, positives: int = 40, negatives: int = 40,
                        workdir: str = "runs/bench_loops", seed: int = 0, progress=None) -> dict:
@@ -386,7 +392,7 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
                     ok = rot < 5.0 and c_err < 2.0 and abs(np.log(s)) < 0.05
                     errors.append((round(float(rot), 2), round(float(c_err), 2), round(float(np.log(s)), 3)))
                 found += int(ok)
-                key = "found" if ok else ("wrong alignment" if r.accepted else r.reason.split(":")[0].split(" <")[0])
+                key = "found" if ok else ("wrong alignment" if r.accepted else _reason_kind(r.reason))
                 reasons[key] = reasons.get(key, 0) + 1
         out["scenes"][scene] = {"submaps": n, "positives": len(pos), "found": found,
                                 "recall": found / len(pos) if pos else None, "negatives": len(neg),

@@ -261,7 +261,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                         progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
         summary = _loops_table(result)
     elif args.suite == "registration":
-        result = benchmarks.bench_registration(frames=args.frames, seed=args.seed,
+        result = benchmarks.bench_registration(frames=args.frames, seed=args.seed, displacement=args.displacement,
                                                workdir=str(args.workdir or "runs/bench_loops"),
                                                progress=lambda name: print(f"scene {name} ...", file=sys.stderr))
         summary = "\n".join(
@@ -454,6 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--noise", choices=NOISE_PROFILES, default="default",
                    help="loops, covisibility: the simulated backbone's noise profile (realistic: monocular drift, "
                         "1-3 %% of the path)")
+    b.add_argument("--displacement", type=float, default=1.0,
+                   help="registration: the estimate is displaced within this share of the drift bounds (default 1)")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
     b.add_argument("--seed", type=int, default=0,
                    help="covisibility, loops, registration, memory: world and noise seed (another seed: other solids along the same "

@@ -86,7 +86,7 @@ class BackendConfig:
     # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
-    consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle (the query's frame), in tiles
+    consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
@@ -315,9 +315,9 @@ class Backend:
             E = sim3_inverse(O_m @ o.T_match_query) @ r.T_match_query @ O_q
             s, R, t = decompose_sim3(E)
             walk = 3.0 * np.sqrt(max(dq + dm, 1))
-            s_m, _, _ = decompose_sim3(P[r.match])
+            s_q2, _, _ = decompose_sim3(P[o.query])  # E maps the other query's frame onto itself: its units
             chains = self._path(r.query, o.query) + self._path(r.match, o.match)
-            tol_t = (c.consistency_trans_tiles * self.stage.grid.tile_size + reg.translation_drift * chains) / float(s_m)
+            tol_t = (c.consistency_trans_tiles * self.stage.grid.tile_size + reg.translation_drift * chains) / float(s_q2)
             ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
             log.debug("cycle %d->%d / %d->%d: scale %.3f, angle %.2f deg, translation %.2f (tolerance %.2f)",
                       r.query, r.match, o.query, o.match, s, ang, np.linalg.norm(t), tol_t)

@@ -57,6 +57,8 @@ def up_frame(up: np.ndarray) -> np.ndarray:
 def cell_heights(levelled: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Highest point per ``cell``-sized ground cell of a levelled cloud [N,3] (height = last coordinate):
     (sorted cell keys [K] int64, tops [K])."""
+    if len(levelled) == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
     ij = np.floor(levelled[:, :2] / cell).astype(np.int64)
     keys = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
     order = np.lexsort((levelled[:, 2], keys))  # by key, highest last

@@ -334,19 +334,22 @@ class Backend:
         log_s, angle, moved = correction_size(r.correction, centroid)
         return log_s <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3 and moved <= b.max_translation / 3
 
-    def _path(self, a: int, b: int) -> float:
-        """Length of the chain of submap origins between submaps ``a`` and ``b`` in the current estimate."""
+    def _steps(self, a: int, b: int) -> np.ndarray:
+        """Lengths [n] of the steps between consecutive submap origins from ``a`` to ``b`` (current estimate)."""
         lo, hi = min(a, b), max(a, b)
         centres = [self.graph.poses[i][:3, 3] for i in range(lo, hi + 1) if i in self.graph.poses]
-        return float(np.sum(np.linalg.norm(np.diff(centres, axis=0), axis=1))) if len(centres) > 1 else 0.0
+        return np.linalg.norm(np.diff(centres, axis=0), axis=1) if len(centres) > 1 else np.zeros(0)
+
+    def _path(self, a: int, b: int) -> float:
+        """Length of the chain of submap origins between submaps ``a`` and ``b`` in the current estimate."""
+        return float(self._steps(a, b).sum())
 
     def _bounds(self, match: int, query: int) -> LoopBounds:
         """What odometry can have drifted between ``match`` and ``query`` (submap ids):
         :func:`~vggt_slam_pp.backend.registration.drift_bounds` over the chain between them in the
         current estimate, with its degraded edges."""
         lo, hi = min(match, query), max(match, query)
-        centres = [self.graph.poses[i][:3, 3] for i in range(lo, hi + 1) if i in self.graph.poses]
-        steps = np.linalg.norm(np.diff(centres, axis=0), axis=1) if len(centres) > 1 else np.zeros(0)
+        steps = self._steps(lo, hi)
         degraded = [float(steps[e.i - lo]) for e in self.graph.edges if e.kind == "odometry" and lo <= e.i < hi
                     and e.info.get("degraded") and e.i - lo < len(steps)]
         return drift_bounds(self.config.registration, hi - lo, float(steps.sum()), self.stage.grid.tile_size,

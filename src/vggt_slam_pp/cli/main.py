@@ -264,12 +264,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         result = benchmarks.bench_registration(frames=args.frames, seed=args.seed, displacement=args.displacement,
                                                workdir=str(args.workdir or "runs/bench_loops"),
                                                progress=lambda name: print(f"scene {name} ...", file=sys.stderr))
-        summary = "\n".join(
-            f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
-            f"{name}: {r['found']} of {r['positives']} revisits registered correctly from a displaced estimate "
+        summary = _per_scene(result["scenes"], lambda r: (
+            f"{r['found']} of {r['positives']} revisits registered correctly from a displaced estimate "
             f"(recall {r['recall']:.2f}), {r['false_accepted']} of {r['negatives']} other places accepted; "
-            f"{r['seconds_median']:.2f} s per pair (median); outcomes {r['outcomes']}"
-            for name, r in result["scenes"].items())
+            f"{r['seconds_median']:.2f} s per pair (median); outcomes {r['outcomes']}"))
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
                                          seed=args.seed)
@@ -279,12 +277,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed, noise=args.noise,
                                                workdir=str(args.workdir or "runs/bench_covisibility"))
-        summary = "\n".join(
-            f"{name}: {r.get('skipped') or ''}" if "skipped" in r else
-            f"{name}: {r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
+        summary = _per_scene(result["scenes"], lambda r: (
+            f"{r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
             f"{r['covisibility_recall']} (voting alone {r['covisibility_recall_votes']}), VPR top-1 precision "
-            f"{r['vpr_top1_precision']}"
-            for name, r in result["scenes"].items())
+            f"{r['vpr_top1_precision']}"))
         summary += (f"\nmean: covisibility recall {result['covisibility_recall']} (target >= 0.9; voting alone "
                     f"{result['covisibility_recall_votes']}), "
                     f"VPR top-1 precision {result['vpr_top1_precision']} (target >= 0.8)")
@@ -293,6 +289,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         print(summary)
     return 0
+
+
+def _per_scene(scenes: dict, line) -> str:
+    """One line per scene: ``line(result)``, or why the scene was skipped."""
+    return "\n".join(f"{name}: {r['skipped']}" if "skipped" in r else f"{name}: {line(r)}"
+                     for name, r in scenes.items())
 
 
 def _default_data() -> Path:

@@ -13,6 +13,7 @@ from conftest import random_trajectory
 from vggt_slam_pp.errors import InputError
 from vggt_slam_pp.geometry import se3_inverse
 from vggt_slam_pp.io import detect_layout, open_source
+from vggt_slam_pp.io.frames import FrameSubset
 from vggt_slam_pp.io.trajectory import write_trajectory
 
 H, W = 24, 32
@@ -317,3 +318,23 @@ def test_kitti_sequence_of_a_root_opens_with_its_ground_truth(tmp_path, rng):
     (root / "sequences" / "07" / "times.txt").write_text("0.0\nabc\n")
     with pytest.raises(InputError, match="malformed time"):
         open_source(root / "sequences" / "07")
+
+
+def test_stride_applies_to_every_layout_and_keeps_ground_truth(tmp_path, rng):
+    root = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    ts = _make_tum(root)
+    gt = random_trajectory(rng, 40, t0=ts[0] - 0.3, dt=0.02)
+    write_trajectory(root / "groundtruth.txt", gt, "tum")
+    full = open_source(root)
+    src = open_source(root, stride=2)
+    assert len(src) == 3 and src.layout == "tum" and src.camera.fx == full.camera.fx
+    np.testing.assert_array_equal(src.timestamps, full.timestamps[::2])
+    f = src[1]
+    assert f.index == 1 and f.timestamp == full[2].timestamp and np.array_equal(f.image, full[2].image)
+    idx, traj = src.frame_ground_truth()
+    np.testing.assert_array_equal(idx, [0, 1, 2])
+    np.testing.assert_allclose(traj.poses, full.frame_ground_truth()[1].poses[::2])
+    with pytest.raises(InputError, match="stride"):
+        open_source(root, stride=0)
+    first = FrameSubset.every(full, 1, limit=4)  # --max-frames
+    assert len(first) == 4 and [f.index for f in first] == [0, 1, 2, 3]

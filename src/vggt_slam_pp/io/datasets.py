@@ -34,7 +34,7 @@ from natsort import natsorted
 from vggt_slam_pp.errors import InputError, TrajectoryError
 from vggt_slam_pp.geometry.camera import PinholeCamera
 from vggt_slam_pp.geometry.lie import se3_inverse
-from vggt_slam_pp.io.frames import FrameSource, ImageSequence
+from vggt_slam_pp.io.frames import FrameSource, FrameSubset, ImageSequence
 from vggt_slam_pp.io.images import IMAGE_EXTENSIONS, read_rgb
 from vggt_slam_pp.io.trajectory import (
     Trajectory,
@@ -482,7 +482,8 @@ def open_source(
         layout: ``auto`` or one of :data:`LAYOUTS` to override detection.
         ground_truth: optional trajectory file paired with the frames (replaces the layout's own).
         gt_format: format of ``ground_truth`` (``auto``, ``tum``, ``kitti``, ``euroc``).
-        stride, target_fps: frame sub-sampling for videos.
+        stride: keep every ``stride``-th frame (videos skip decoding the others); frames are renumbered.
+        target_fps: videos only: the stride that gives about this frame rate.
         fps: frame rate assumed for image folders whose file names are not timestamps.
     """
     path = Path(path)
@@ -509,4 +510,4 @@ def open_source(
             source.set_ground_truth(read_trajectory(ground_truth, gt_format))
         except TrajectoryError as exc:
             raise InputError(f"bad ground truth: {exc}") from None
-    return source
+    return source if layout == "video" else FrameSubset.every(source, stride)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
@@ -217,3 +219,43 @@ class ImageSequence(FrameSource):
                 raise InputError(f"depth {self.depth_paths[i]} is {depth.shape}, image {path} is "
                                  f"{image.shape[:2]}")
         return Frame(i, float(self._timestamps[i]), image, depth, self._camera, path.name)
+
+
+class FrameSubset(FrameSource):
+    """Some frames of another source, renumbered 0..n-1 (``--stride``, ``--max-frames``).
+
+    Timestamps, calibration and ground truth are the source's: ground truth is matched by time.
+    """
+
+    def __init__(self, source: FrameSource, indices: np.ndarray) -> None:
+        super().__init__(source.root)
+        self.source = source
+        self.indices = np.asarray(indices, dtype=np.int64)
+        if len(self.indices) and (self.indices.min() < 0 or self.indices.max() >= len(source)):
+            raise InputError(f"frame subset out of range for a source of {len(source)} frames")
+        self.layout = source.layout
+
+    @classmethod
+    def every(cls, source: FrameSource, stride: int = 1, limit: int | None = None) -> FrameSource:
+        """Every ``stride``-th frame, at most ``limit`` of them (the source itself when that is all)."""
+        if stride < 1:
+            raise InputError(f"stride must be >= 1, got {stride}")
+        idx = np.arange(0, len(source), stride)[:limit]
+        return source if len(idx) == len(source) else cls(source, idx)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.source.timestamps[self.indices]
+
+    @property
+    def camera(self) -> PinholeCamera | None:
+        return self.source.camera
+
+    def _native_ground_truth(self) -> Trajectory | None:
+        return self.source.ground_truth()
+
+    def _load(self, i: int) -> Frame:
+        return dataclasses.replace(self.source[int(self.indices[i])], index=i)

@@ -304,9 +304,10 @@ def _reason_kind(reason: str) -> str:
 
 def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int = 320, height: int = 240,
                        displacement: float = 1.0, positives: int = 40, negatives: int = 40,
-                       workdir: str = "runs/bench_loops", seed: int = 0, progress=None) -> dict:
+                       workdir: str = "runs/bench_loops", seed: int = 0, noise: str = "default",
+                       progress=None) -> dict:
     """Loop registration alone, with no usable initial estimate: submap pairs of synthetic revisits
-    (simulated backbone, default noise), the query's estimate displaced by a random similarity anywhere
+    (simulated backbone, ``noise`` profile), the query's estimate displaced by a random similarity anywhere
     within ``displacement`` times the drift bounds of the chain between the two
     (:func:`~vggt_slam_pp.backend.registration.drift_bounds`: uniform yaw, log-scale and shift length).
 
@@ -331,7 +332,7 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
     rng = np.random.default_rng(seed)
     config = RegistrationConfig()
     plane = GroundPlane(np.zeros(3), np.eye(3))
-    out: dict = {"scenes": {}, "displacement": displacement}
+    out: dict = {"scenes": {}, "displacement": displacement, "noise": noise}
     for scene in scenes:
         if progress:
             progress(scene)
@@ -341,7 +342,7 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
             continue
         idx, gt = source.frame_ground_truth()
         gt_poses = dict(zip(idx.tolist(), gt.poses, strict=True))
-        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise(seed=seed)),
+        fe = Frontend(SimulatedBackbone(gt_poses, SimulatedNoise.profile(noise, seed)),
                       FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8))
         for i in range(len(source)):
             fe.process(source[i])

@@ -155,11 +155,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from vggt_slam_pp.frontend.frontend import FrontendConfig
     from vggt_slam_pp.frontend.keyframes import KeyframeConfig
     from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.io.frames import FrameSubset
     from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
 
     source = open_source(args.input, layout=args.layout, ground_truth=args.gt, stride=args.stride)
     if args.max_frames:
-        source = _Truncated(source, args.max_frames)
+        source = FrameSubset.every(source, 1, args.max_frames)
     config = RunConfig(
         backbone=BackboneConfig(name=args.backbone, weights=args.weights, device=args.device,
                                 replay_dir=str(args.replay) if args.replay else None,
@@ -211,29 +212,6 @@ def _print_summary(report: dict, out) -> None:
     print(f"outputs: {out}/ ({files})")
 
 
-class _Truncated:
-    """The first ``n`` frames of a source (for quick runs)."""
-
-    def __init__(self, source, n: int) -> None:
-        self._s, self._n = source, min(n, len(source))
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __getitem__(self, i: int):
-        if not 0 <= i < self._n:
-            raise IndexError(i)
-        return self._s[i]
-
-    def frame_ground_truth(self, *a, **k):
-        m = self._s.frame_ground_truth(*a, **k)
-        if m is None:
-            return None
-        idx, gt = m
-        keep = idx < self._n
-        return idx[keep], gt.subset(np.nonzero(keep)[0])
-
-
 # ------------------------------------------------------------------ bench
 def cmd_bench(args: argparse.Namespace) -> int:
     from vggt_slam_pp import benchmarks
@@ -262,6 +240,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         summary = _loops_table(result)
     elif args.suite == "registration":
         result = benchmarks.bench_registration(frames=args.frames, seed=args.seed, displacement=args.displacement,
+                                               noise=args.noise,
                                                workdir=str(args.workdir or "runs/bench_loops"),
                                                progress=lambda name: print(f"scene {name} ...", file=sys.stderr))
         summary = _per_scene(result["scenes"], lambda r: (
@@ -454,8 +433,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--fps-repeats", type=int, default=3,
                    help="loops: runs with and without the back-end per scenario for the fps medians")
     b.add_argument("--noise", choices=NOISE_PROFILES, default="default",
-                   help="loops, covisibility: the simulated backbone's noise profile (realistic: monocular drift, "
-                        "1-3 %% of the path)")
+                   help="loops, covisibility, registration: the simulated backbone's noise profile (realistic: "
+                        "monocular drift, 1-3 %% of the path)")
     b.add_argument("--displacement", type=float, default=1.0,
                    help="registration: the estimate is displaced within this share of the drift bounds (default 1)")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence

@@ -189,3 +189,49 @@ def test_run_summary_says_how_many_edges_degraded(capsys):
     report["edges"][1]["degraded"] = False
     _print_summary(report, "out")
     assert "odometry: 2 edges, none degraded" in capsys.readouterr().out
+
+
+def test_a_saved_configuration_runs_again_and_flags_override_it(tmp_path, capsys):
+    from vggt_slam_pp.pipeline import RunConfig
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    seq = tmp_path / "seq"
+    write_sequence(make_scene("figure8", frames=30, width=160, height=120, seed=2), seq)
+    code, _, _ = _run(capsys, "run", "--input", seq, "--preset", "synthetic", "--noise", "realistic", "--seed", "3",
+                      "--tau", "10", "--submap-size", "4", "--out", tmp_path / "a", "-q", "--no-backend")
+    assert code == 0
+    saved = RunConfig.load(tmp_path / "a" / "config.json")
+    assert saved.backbone.name == "simulated" and saved.backbone.seed == 3 and saved.frontend.submap_size == 4
+    assert saved.frontend.keyframes.tau_disparity == 10.0 and not saved.backend
+    code, _, _ = _run(capsys, "run", "--input", seq, "--config", tmp_path / "a" / "config.json", "--out", tmp_path / "b",
+                      "-q")
+    assert code == 0 and RunConfig.load(tmp_path / "b" / "config.json") == saved
+    first = (tmp_path / "a" / "keyframes_odometry.txt").read_bytes()
+    assert (tmp_path / "b" / "keyframes_odometry.txt").read_bytes() == first  # the same run again
+    code, _, _ = _run(capsys, "run", "--input", seq, "--config", tmp_path / "a" / "config.json", "--submap-size", "6",
+                      "--out", tmp_path / "c", "-q")
+    c = RunConfig.load(tmp_path / "c" / "config.json")
+    assert code == 0 and c.frontend.submap_size == 6 and c.backbone.seed == 3  # the flag wins, the rest stays
+
+
+def test_presets_and_bad_configuration_files(tmp_path, capsys):
+    from vggt_slam_pp.configs import PRESETS
+    from vggt_slam_pp.errors import InputError
+    from vggt_slam_pp.pipeline import RunConfig
+
+    assert RunConfig.preset("photos").frontend.submap_size == 8 and RunConfig.preset("vggt").backbone.name == "vggt"
+    assert {RunConfig.preset(name).backbone.name for name in PRESETS} == {"vggt", "simulated", "colmap"}
+    with pytest.raises(InputError, match="unknown preset"):
+        RunConfig.preset("fast")
+    bad = tmp_path / "config.json"
+    bad.write_text('{"frontend": {"submap_sise": 8}}')
+    with pytest.raises(InputError, match=r"config.json.frontend: unknown key\(s\) submap_sise"):
+        RunConfig.load(bad)
+    older = tmp_path / "older.json"
+    older.write_text('{"backbone": {"name": "colmap"}}')  # missing keys keep their defaults
+    assert RunConfig.load(older).backbone.name == "colmap" and RunConfig.load(older).frontend.submap_size == 32
+    bad.write_text("{not json")
+    _one_line_error(*_run(capsys, "run", "--input", tmp_path, "--config", bad, "--out", tmp_path / "x", "-q"),
+                    "not JSON")
+    _one_line_error(*_run(capsys, "run", "--input", tmp_path, "--config", tmp_path / "none.json", "--out",
+                          tmp_path / "x", "-q"), "cannot read the configuration")

@@ -223,14 +223,14 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
 
 
 def _synthetic_run_config(seed: int, backend: bool = True, noise: str = "default", **backend_fields):
-    from vggt_slam_pp.backend.backend import BackendConfig
-    from vggt_slam_pp.frontend.frontend import FrontendConfig
-    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
-    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig
+    import dataclasses
 
-    return RunConfig(backbone=BackboneConfig(name="simulated", seed=seed, noise=noise),
-                     frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8),
-                     save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields))
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.pipeline import RunConfig
+
+    base = RunConfig.preset("synthetic")
+    return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, seed=seed, noise=noise),
+                               save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields))
 
 
 def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(), frames: int = 600,

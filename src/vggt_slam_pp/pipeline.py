@@ -37,6 +37,7 @@ from vggt_slam_pp import __version__
 from vggt_slam_pp.backend.backend import BackendConfig, BackendResult, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.backend.worker import BackendWorker
+from vggt_slam_pp.configs import PRESETS, from_dict, merged
 from vggt_slam_pp.dem.raster import DemConfig
 from vggt_slam_pp.errors import EvaluationError, FrontendError, InputError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
@@ -77,6 +78,30 @@ class RunConfig:
     blas_threads: int = 1  # numpy / scipy BLAS threads in the front-end's process (0: the library's default).
     # The front-end's matrices are small: a second OpenBLAS thread spin-waits more than it computes (2 cores:
     # 88 -> 107 fps on the block loop with 1) and takes the core the back-end worker would use
+
+    @classmethod
+    def from_dict(cls, data: dict) -> RunConfig:
+        """The configuration a run wrote to ``config.json`` (missing keys keep their defaults)."""
+        return from_dict(cls, data)
+
+    @classmethod
+    def load(cls, path: str | Path) -> RunConfig:
+        """Read ``config.json`` of an earlier run (or a file of the same form); one-line errors."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except OSError as exc:
+            raise InputError(f"cannot read the configuration {path}: {exc.strerror or exc}") from None
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{path} is not JSON: {exc}") from None
+        return from_dict(cls, data, where=str(path))
+
+    @classmethod
+    def preset(cls, name: str) -> RunConfig:
+        """A named configuration from :data:`PRESETS`."""
+        if name not in PRESETS:
+            raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return from_dict(cls, merged(dataclasses.asdict(cls()), PRESETS[name][1]), where=f"preset {name}")
 
 
 def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from vggt_slam_pp import __version__
+from vggt_slam_pp.configs import PRESETS
 from vggt_slam_pp.errors import VggtSlamError
 
 log = logging.getLogger("vggt_slam_pp")
@@ -95,10 +96,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------ demo
 def cmd_demo(args: argparse.Namespace) -> int:
-    from vggt_slam_pp.frontend.frontend import FrontendConfig
-    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    import dataclasses
+
     from vggt_slam_pp.io import open_source
-    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
+    from vggt_slam_pp.pipeline import RunConfig, run
     from vggt_slam_pp.synthetic import make_scene, write_sequence
 
     out = Path(args.out)
@@ -107,8 +108,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         scene = make_scene("loop", frames=args.frames, seed=args.seed, width=args.width, height=args.height)
         write_sequence(scene, seq_dir, progress=_progress(len(scene.trajectory), "render"))
     source = open_source(seq_dir)
-    config = RunConfig(backbone=BackboneConfig(name="simulated", seed=args.seed, noise=args.noise),
-                       frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=20.0), submap_size=8))
+    config = RunConfig.preset("synthetic")
+    config = dataclasses.replace(config, backbone=dataclasses.replace(config.backbone, seed=args.seed, noise=args.noise))
     print(f"synthetic block loop: {len(source)} frames -> {seq_dir}; running VGGT-SLAM++ (simulated backbone, "
           "hog encoder, offline)")
     report = run(source, config, out / "run", progress=_progress(len(source), "frames"))
@@ -149,30 +150,48 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------ run
-def cmd_run(args: argparse.Namespace) -> int:
+# run flags that set a configuration field: flag's dest -> (field path in RunConfig, conversion). Unset flags
+# (None) leave the preset's or the --config file's value.
+_RUN_FLAGS = {
+    "backbone": ("backbone.name", None), "weights": ("backbone.weights", None), "device": ("backbone.device", None),
+    "replay": ("backbone.replay_dir", str), "noise": ("backbone.noise", None), "seed": ("backbone.seed", None),
+    "matcher": ("backbone.colmap_matcher", None), "deterministic": ("backbone.deterministic", None),
+    "tau": ("frontend.keyframes.tau_disparity", None), "submap_size": ("frontend.submap_size", None),
+    "overlap": ("frontend.overlap", None), "calibrated": ("calibrated", None),
+    "no_save_predictions": ("save_predictions", lambda v: not v), "no_backend": ("backend", lambda v: not v),
+    "encoder": ("backend_config.encoder", None), "encoder_weights": ("backend_config.encoder_weights", None),
+}
+
+
+def run_config_from_args(args: argparse.Namespace):
+    """The run's configuration: the preset (default ``vggt``) or the ``--config`` file, then every flag given."""
     import dataclasses
 
-    from vggt_slam_pp.frontend.frontend import FrontendConfig
-    from vggt_slam_pp.frontend.keyframes import KeyframeConfig
+    from vggt_slam_pp.pipeline import RunConfig
+
+    base = RunConfig.load(args.config) if args.config else RunConfig.preset(args.preset or "vggt")
+    data = dataclasses.asdict(base)
+    for dest, (path, convert) in _RUN_FLAGS.items():
+        value = getattr(args, dest)
+        if value is None:
+            continue
+        *parents, leaf = path.split(".")
+        node = data
+        for key in parents:
+            node = node[key]
+        node[leaf] = convert(value) if convert else value
+    return RunConfig.from_dict(data)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.io.frames import FrameSubset
-    from vggt_slam_pp.pipeline import BackboneConfig, RunConfig, run
+    from vggt_slam_pp.pipeline import run
 
+    config = run_config_from_args(args)
     source = open_source(args.input, layout=args.layout, ground_truth=args.gt, stride=args.stride)
     if args.max_frames:
         source = FrameSubset.every(source, 1, args.max_frames)
-    config = RunConfig(
-        backbone=BackboneConfig(name=args.backbone, weights=args.weights, device=args.device,
-                                replay_dir=str(args.replay) if args.replay else None,
-                                noise=args.noise, seed=args.seed, colmap_matcher=args.matcher,
-                                deterministic=args.deterministic),
-        frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=args.tau),
-                                submap_size=args.submap_size, overlap=args.overlap),
-        calibrated=args.calibrated, save_predictions=not args.no_save_predictions,
-        backend=not args.no_backend)
-    if config.backend and args.encoder != "hog":
-        config = dataclasses.replace(config, backend_config=dataclasses.replace(
-            config.backend_config, encoder=args.encoder, encoder_weights=args.encoder_weights))
     report = run(source, config, args.out, progress=_progress(len(source), "frames", disable=args.quiet))
     _print_summary(report, args.out)
     return 0
@@ -381,36 +400,42 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_synth)
     r = sub.add_parser("run", help="run the system on an input and write trajectories and a report")
     r.add_argument("--input", required=True, type=Path, help="image folder, video or dataset folder")
-    r.add_argument("--backbone", choices=("vggt", "simulated", "colmap", "replay"), default="vggt")
+    start = r.add_mutually_exclusive_group()
+    start.add_argument("--preset", choices=list(PRESETS), help="a named configuration to start from (default "
+                       "vggt); flags given with it override it: " + "; ".join(
+                           f"{name}: {what}" for name, (what, _) in PRESETS.items()))
+    start.add_argument("--config", type=Path, help="start from this configuration file (a run's config.json); "
+                                                   "flags given with it override it")
+    r.add_argument("--backbone", choices=("vggt", "simulated", "colmap", "replay"), help="default: the preset's")
     r.add_argument("--out", required=True, type=Path, help="output folder")
-    r.add_argument("--calibrated", action="store_true",
+    r.add_argument("--calibrated", action="store_true", default=None,
                    help="use the dataset's intrinsics and distortion (undistort / known camera)")
-    r.add_argument("--no-backend", action="store_true", help="front-end only (odometry)")
-    r.add_argument("--encoder", choices=("hog", "dinov2"), default="hog",
+    r.add_argument("--no-backend", action="store_true", default=None, help="front-end only (odometry)")
+    r.add_argument("--encoder", choices=("hog", "dinov2"),
                    help="DEM encoder for covisibility (default hog: weight-free)")
     r.add_argument("--encoder-weights", default=None, help="dinov2: weights file or hub name")
     r.add_argument("--layout", default="auto", help="input layout (default: detected)")
     r.add_argument("--gt", type=Path, help="ground-truth trajectory file for evaluation")
     r.add_argument("--stride", type=int, default=1, help="use every N-th input frame")
     r.add_argument("--max-frames", type=int, help="stop after this many frames")
-    r.add_argument("--weights", default="vggt-1b", help="vggt: weights name or path (model.pt, .safetensors, folder)")
-    r.add_argument("--device", default="auto", help="vggt: auto, cpu, cuda, cuda:N")
+    r.add_argument("--weights", help="vggt: weights name or path (model.pt, .safetensors, folder; default vggt-1b)")
+    r.add_argument("--device", help="vggt: auto (default), cpu, cuda, cuda:N")
     r.add_argument("--replay", type=Path, help="replay: folder of an earlier run (or its predictions/)")
-    r.add_argument("--noise", choices=NOISE_PROFILES, default="default",
+    r.add_argument("--noise", choices=NOISE_PROFILES,
                    help="simulated: noise profile (default; realistic: monocular drift, 1-3 %% of the path; zero)")
-    r.add_argument("--matcher", choices=("exhaustive", "sequential"), default="exhaustive",
+    r.add_argument("--matcher", choices=("exhaustive", "sequential"),
                    help="colmap: match all keyframe pairs of a submap (default) or sequentially")
-    r.add_argument("--submap-size", type=int, default=32,
+    r.add_argument("--submap-size", type=int,
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
-    r.add_argument("--overlap", type=int, default=0,
+    r.add_argument("--overlap", type=int,
                    help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
                         "max(2, min(4, w/4)) for colmap)")
-    r.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
+    r.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="colmap: every step on one thread, so that the same input and --seed give bit-identical "
                         "trajectories (default); --no-deterministic runs the mapper multi-threaded (~25 %% faster)")
-    r.add_argument("--tau", type=float, default=40.0, help="keyframe LK disparity threshold, px (default 40)")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--no-save-predictions", action="store_true", help="do not write predictions/")
+    r.add_argument("--tau", type=float, help="keyframe LK disparity threshold, px (default 40)")
+    r.add_argument("--seed", type=int, help="seed of every random choice (default 0)")
+    r.add_argument("--no-save-predictions", action="store_true", default=None, help="do not write predictions/")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 

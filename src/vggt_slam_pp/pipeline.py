@@ -137,30 +137,39 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
 
 
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
-        progress: Callable[[int, int], None] | None = None) -> dict:
-    """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary."""
+        progress: Callable[[int, int], None] | None = None, resume: bool = False) -> dict:
+    """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary.
+
+    ``resume``: ``out_dir`` holds an interrupted run of the same input and configuration; the backbone
+    calls it finished are read from its ``predictions/`` instead of being computed again, and everything
+    else (keyframe selection, odometry, the back-end) runs again, deterministically, so the result is
+    the uninterrupted run's (docs/architecture.md, "Resume")."""
     from threadpoolctl import threadpool_limits
 
     if config.blas_threads < 0:
         raise InputError(f"blas_threads must be >= 0 (0: the library default), got {config.blas_threads}")
     limit = threadpool_limits(config.blas_threads, user_api="blas") if config.blas_threads else nullcontext()
     with limit:
-        return _run(source, config, out_dir, backbone, progress)
+        return _run(source, config, out_dir, backbone, progress, resume)
 
 
 def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None,
-         progress: Callable[[int, int], None] | None) -> dict:
+         progress: Callable[[int, int], None] | None, resume: bool = False) -> dict:
+    from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ResumeBackbone
+
     out = Path(out_dir)
+    if resume and not PredictionStore(out / "predictions").all():
+        raise InputError(f"nothing to resume in {out}: no saved predictions (predictions/submap_*.safetensors)")
     out.mkdir(parents=True, exist_ok=True)
     reset_peak_rss()  # peak_rss_mb: this run's, not whatever the calling process did before
     atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
     t0 = time.perf_counter()
     backbone = backbone or make_backbone(config, source)
+    if resume:
+        backbone = ResumeBackbone(backbone, out / "predictions")
     store = None
-    if config.save_predictions and config.backbone.name != "replay":
-        from vggt_slam_pp.frontend.backbones.replay import PredictionStore
-
-        store = PredictionStore(out / "predictions")
+    if (config.save_predictions or resume) and config.backbone.name != "replay":
+        store = PredictionStore(out / "predictions", keep_existing=resume)
     frontend = Frontend(backbone, config.frontend, store=store)
     backend_config = _scale_aware(config.backend_config, backbone)
     worker = BackendWorker(backend_config, out / "submaps") if config.backend else None

@@ -184,23 +184,56 @@ def run_config_from_args(args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from vggt_slam_pp.errors import InputError
+    from vggt_slam_pp.io.trajectory import atomic_write_text
+    from vggt_slam_pp.pipeline import RunConfig, run
+
+    if args.resume:
+        given = [f"--{dest.replace('_', '-')}" for dest in (*_RUN_FLAGS, *_INPUT_FLAGS, "out", "config", "preset")
+                 if getattr(args, dest) not in (None, _INPUT_FLAGS.get(dest))]
+        if given:
+            raise InputError(f"--resume takes the input and the configuration from {args.resume}; drop "
+                             f"{', '.join(given)}")
+        folder = args.resume
+        try:
+            given_input = json.loads((folder / "input.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot resume {folder}: no readable input.json ({exc})") from None
+        config, out = RunConfig.load(folder / "config.json"), folder
+    else:
+        if args.input is None or args.out is None:
+            raise InputError("run needs --input and --out (or --resume DIR)")
+        given_input = {dest: getattr(args, dest) for dest in _INPUT_FLAGS}
+        given_input.update(input=str(args.input.resolve()), gt=str(args.gt.resolve()) if args.gt else None)
+        config, out = run_config_from_args(args), args.out
+    source = _open_input(given_input)
+    if not args.resume:
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "input.json", json.dumps(given_input, indent=2))
+    report = run(source, config, out, progress=_progress(len(source), "frames", disable=args.quiet),
+                 resume=bool(args.resume))
+    _print_summary(report, out)
+    return 0
+
+
+# run flags that choose the input (and their defaults): input.json keeps them for --resume
+_INPUT_FLAGS = {"input": None, "layout": "auto", "gt": None, "stride": 1, "max_frames": None}
+
+
+def _open_input(given: dict):
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.io.frames import FrameSubset
-    from vggt_slam_pp.pipeline import run
 
-    config = run_config_from_args(args)
-    source = open_source(args.input, layout=args.layout, ground_truth=args.gt, stride=args.stride)
-    if args.max_frames:
-        source = FrameSubset.every(source, 1, args.max_frames)
-    report = run(source, config, args.out, progress=_progress(len(source), "frames", disable=args.quiet))
-    _print_summary(report, args.out)
-    return 0
+    source = open_source(given["input"], layout=given["layout"], ground_truth=given["gt"], stride=given["stride"])
+    return FrameSubset.every(source, 1, given["max_frames"]) if given["max_frames"] else source
 
 
 def _print_summary(report: dict, out) -> None:
     msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
     print(msg)
+    if report.get("resumed_backbone_calls"):
+        print(f"resumed: {report['resumed_backbone_calls']} backbone calls read from predictions/")
     edges = report.get("edges", [])
     degraded = [e for e in edges if e["degraded"]]
     recovered = [e for e in edges if e.get("cause") and not e["degraded"]]
@@ -399,7 +432,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_synth)
     r = sub.add_parser("run", help="run the system on an input and write trajectories and a report")
-    r.add_argument("--input", required=True, type=Path, help="image folder, video or dataset folder")
+    r.add_argument("--input", type=Path, help="image folder, video or dataset folder")
+    r.add_argument("--resume", type=Path, metavar="DIR",
+                   help="continue the interrupted run in DIR (its input.json and config.json) from its last "
+                        "finished submap; the result equals an uninterrupted run")
     start = r.add_mutually_exclusive_group()
     start.add_argument("--preset", choices=list(PRESETS), help="a named configuration to start from (default "
                        "vggt); flags given with it override it: " + "; ".join(
@@ -407,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     start.add_argument("--config", type=Path, help="start from this configuration file (a run's config.json); "
                                                    "flags given with it override it")
     r.add_argument("--backbone", choices=("vggt", "simulated", "colmap", "replay"), help="default: the preset's")
-    r.add_argument("--out", required=True, type=Path, help="output folder")
+    r.add_argument("--out", type=Path, help="output folder")
     r.add_argument("--calibrated", action="store_true", default=None,
                    help="use the dataset's intrinsics and distortion (undistort / known camera)")
     r.add_argument("--no-backend", action="store_true", default=None, help="front-end only (odometry)")

@@ -68,10 +68,14 @@ def load_prediction(path: str | Path) -> SubmapPrediction:
 
 
 class PredictionStore:
-    """A folder of saved predictions, indexed by the submap's first frame index."""
+    """A folder of saved predictions, one file per backbone call (submap id and attempt).
 
-    def __init__(self, folder: str | Path) -> None:
+    ``keep_existing``: a file that is already there is not written again (a resumed run replays it).
+    """
+
+    def __init__(self, folder: str | Path, keep_existing: bool = False) -> None:
         self.folder = Path(folder)
+        self.keep_existing = keep_existing
 
     def path(self, submap_id: int, attempt: int = 0) -> Path:
         suffix = f"_{attempt}" if attempt else ""
@@ -79,10 +83,26 @@ class PredictionStore:
 
     def save(self, submap_id: int, pred: SubmapPrediction, attempt: int = 0) -> None:
         """Save the ``attempt``-th backbone call for this submap (later ones: a bridge)."""
-        save_prediction(self.path(submap_id, attempt), pred)
+        path = self.path(submap_id, attempt)
+        if not (self.keep_existing and path.is_file()):
+            save_prediction(path, pred)
 
     def all(self) -> list[Path]:
         return sorted(self.folder.glob("submap_*.safetensors"))
+
+
+def saved_by_frames(folder: str | Path) -> dict[tuple[int, ...], Path]:
+    """The saved predictions in ``folder``, keyed by their keyframes' frame indices."""
+    from safetensors import safe_open
+
+    out: dict[tuple[int, ...], Path] = {}
+    for p in PredictionStore(folder).all():
+        try:
+            with safe_open(str(p), framework="numpy") as f:
+                out[tuple(int(i) for i in f.get_tensor("frame_indices"))] = p
+        except Exception as exc:  # noqa: BLE001 - safetensors raises its own error type
+            raise FrontendError(f"cannot read saved prediction {p}: {exc}") from exc
+    return out
 
 
 class ReplayBackbone(Backbone):
@@ -91,17 +111,10 @@ class ReplayBackbone(Backbone):
     name = "replay"
 
     def __init__(self, folder: str | Path) -> None:
-        store = PredictionStore(folder)
-        files = store.all()
-        if not files:
+        self._by_frames = saved_by_frames(folder)
+        if not self._by_frames:
             raise FrontendError(f"no saved predictions (submap_*.safetensors) in {folder}")
-        self._by_frames: dict[tuple[int, ...], Path] = {}
-        for p in files:
-            from safetensors import safe_open
-
-            with safe_open(str(p), framework="numpy") as f:
-                self._by_frames[tuple(int(i) for i in f.get_tensor("frame_indices"))] = p
-        first = load_prediction(files[0])
+        first = load_prediction(next(iter(self._by_frames.values())))
         self.dense = first.dense
         self.metric = bool(first.info.get("metric", False))
 
@@ -113,3 +126,31 @@ class ReplayBackbone(Backbone):
                                 "frames); replay needs the same input, stride and keyframe settings as the "
                                 "recorded run")
         return load_prediction(path)
+
+
+class ResumeBackbone(Backbone):
+    """A resumed run: the saved prediction for keyframes an interrupted run had already reconstructed,
+    ``live`` for the others. Every call reaches ``live``'s :meth:`committed` hook as before, so a
+    backbone whose outputs depend only on its inputs and commits gives what an uninterrupted run gave."""
+
+    def __init__(self, live: Backbone, folder: str | Path) -> None:
+        self.live = live
+        self.name, self.dense, self.metric = live.name, live.dense, live.metric
+        self._by_frames = saved_by_frames(folder)
+        self.replayed = 0
+
+    def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
+        path = self._by_frames.get(tuple(int(f.index) for f in frames))
+        if path is None:
+            return self.live.predict(frames)
+        self.replayed += 1
+        return load_prediction(path)
+
+    def committed(self, frame_indices: Sequence[int]) -> None:
+        self.live.committed(frame_indices)
+
+    def describe(self) -> dict:
+        return {**self.live.describe(), "resumed_backbone_calls": self.replayed}
+
+    def close(self) -> None:
+        self.live.close()

@@ -1,0 +1,100 @@
+"""Resuming an interrupted run: the result equals the uninterrupted run's."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from vggt_slam_pp.cli.main import main
+from vggt_slam_pp.errors import InputError
+from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.io import open_source
+from vggt_slam_pp.io.trajectory import read_tum
+from vggt_slam_pp.pipeline import RunConfig, make_backbone, run
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    folder = tmp_path_factory.mktemp("resume") / "seq"
+    write_sequence(make_scene("loop", frames=60, width=96, height=72, seed=4), folder)
+    return folder
+
+
+class _CrashAfter(Backbone):
+    """The live backbone until ``calls`` predictions were made, then a Ctrl-C."""
+
+    def __init__(self, live: Backbone, calls: int) -> None:
+        self.live, self.calls = live, calls
+        self.name, self.dense, self.metric = live.name, live.dense, live.metric
+
+    def predict(self, frames):
+        if self.calls == 0:
+            raise KeyboardInterrupt
+        self.calls -= 1
+        return self.live.predict(frames)
+
+    def committed(self, frame_indices) -> None:
+        self.live.committed(frame_indices)
+
+
+def _config(**backend) -> RunConfig:
+    import dataclasses
+
+    from vggt_slam_pp.backend.backend import BackendConfig
+
+    base = RunConfig.preset("synthetic")
+    return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, noise="realistic", seed=2),
+                               frontend=dataclasses.replace(base.frontend, submap_size=4),
+                               backend_config=BackendConfig(**backend))
+
+
+def _same(a, b) -> None:
+    ta, tb = read_tum(a), read_tum(b)
+    assert np.array_equal(ta.timestamps, tb.timestamps)
+    assert np.abs(ta.poses[:, :3, 3] - tb.poses[:, :3, 3]).max() <= 1e-6
+
+
+def test_a_resumed_run_equals_the_uninterrupted_one(sequence, tmp_path):
+    source = open_source(sequence)
+    config = _config(worker="inline")
+    whole = run(source, config, tmp_path / "whole")
+    with pytest.raises(KeyboardInterrupt):
+        run(source, config, tmp_path / "cut", backbone=_CrashAfter(make_backbone(config, source), 5))
+    assert len(list((tmp_path / "cut" / "predictions").glob("*.safetensors"))) == 5
+    resumed = run(source, config, tmp_path / "cut", resume=True)
+    assert resumed["resumed_backbone_calls"] == 5 and resumed["submaps"] == whole["submaps"] > 5
+    for name in ("keyframes_odometry.txt", "keyframes.txt", "frames.txt"):
+        _same(tmp_path / "whole" / name, tmp_path / "cut" / name)
+    assert resumed["loops_accepted"] == whole["loops_accepted"]
+    with pytest.raises(InputError, match="nothing to resume"):
+        run(source, config, tmp_path / "empty", resume=True)
+
+
+def test_run_resume_reads_input_and_configuration_from_the_folder(sequence, tmp_path, capsys, monkeypatch):
+    from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone
+
+    args = ["run", "--input", str(sequence), "--preset", "synthetic", "--noise", "realistic", "--submap-size", "4",
+            "--seed", "2", "--no-backend", "-q"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    original, calls = SimulatedBackbone.predict, []
+
+    def crashing(self, frames):
+        calls.append(1)
+        if len(calls) > 4:
+            raise KeyboardInterrupt
+        return original(self, frames)
+
+    monkeypatch.setattr(SimulatedBackbone, "predict", crashing)
+    assert main([*args, "--out", str(tmp_path / "cut")]) == 130  # interrupted
+    monkeypatch.setattr(SimulatedBackbone, "predict", original)
+    assert json.loads((tmp_path / "cut" / "input.json").read_text())["input"] == str(sequence.resolve())
+    capsys.readouterr()
+    assert main(["run", "--resume", str(tmp_path / "cut"), "-q"]) == 0
+    assert "resumed: 4 backbone calls read from predictions/" in capsys.readouterr().out
+    _same(tmp_path / "whole" / "keyframes_odometry.txt", tmp_path / "cut" / "keyframes_odometry.txt")
+    assert main(["run", "--resume", str(tmp_path / "cut"), "--submap-size", "8"]) == 2  # settings come from DIR
+    assert "--resume" in capsys.readouterr().err

@@ -98,3 +98,46 @@ def test_run_resume_reads_input_and_configuration_from_the_folder(sequence, tmp_
     _same(tmp_path / "whole" / "keyframes_odometry.txt", tmp_path / "cut" / "keyframes_odometry.txt")
     assert main(["run", "--resume", str(tmp_path / "cut"), "--submap-size", "8"]) == 2  # settings come from DIR
     assert "--resume" in capsys.readouterr().err
+
+
+def test_a_finished_run_is_a_map_and_damaged_maps_are_refused(sequence, tmp_path):
+    import shutil
+
+    from vggt_slam_pp.backend.mapfile import load_map
+
+    source = open_source(sequence)
+    config = _config(worker="inline")
+    report = run(source, config, tmp_path / "map")
+    saved = load_map(tmp_path / "map")
+    graph = json.loads((tmp_path / "map" / "graph.json").read_text())
+    assert len(saved.submaps) == report["submaps"] and saved.tile_size == graph["tile_size"]
+    assert np.allclose(saved.submaps[-1].T_world_submap, graph["nodes"][-1]["T_world_submap"])
+    assert saved.submaps[0].camera_centers.shape == (len(saved.submaps[0].frames), 3)
+    assert sum(e.kind == "odometry" for e in saved.edges) == report["submaps"] - 1
+    assert np.array_equal(saved.store.get(2), np.load(tmp_path / "map" / "submaps" / "000002.npy"))
+
+    def damaged(edit, message):
+        bad = tmp_path / f"bad_{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(tmp_path / "map", bad)
+        edit(bad)
+        with pytest.raises(InputError, match=message) as info:
+            load_map(bad)
+        assert "\n" not in str(info.value)
+
+    def truncate(folder):
+        p = folder / "submaps" / "000003.npy"
+        p.write_bytes(p.read_bytes()[:100])
+
+    def other_version(folder):
+        m = json.loads((folder / "map.json").read_text())
+        (folder / "map.json").write_text(json.dumps({**m, "version": 99}))
+
+    damaged(truncate, "000003.npy has 100 bytes")
+    damaged(lambda f: (f / "submaps" / "000001.npy").unlink(), "000001.npy is missing")
+    damaged(other_version, "format version 99")
+    damaged(lambda f: (f / "map.json").write_text("{}"), "not a vggt-slam-pp map manifest")
+    damaged(lambda f: (f / "map.json").unlink(), "not a map: no map.json")
+    with pytest.raises(KeyboardInterrupt):  # an interrupted run leaves no manifest: it is not a map
+        run(source, config, tmp_path / "map", backbone=_CrashAfter(make_backbone(config, source), 3))
+    with pytest.raises(InputError, match="no map.json"):
+        load_map(tmp_path / "map")

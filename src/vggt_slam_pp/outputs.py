@@ -2,7 +2,7 @@
 
 * ``keyframes.txt`` / ``.kitti``, ``frames.txt`` / ``.kitti``: the corrected trajectory (the odometry-only
   files are written by the pipeline beside them);
-* ``graph.json``: nodes (corrected and odometry ``T_world_submap``, frames), edges (odometry and loop, with
+* ``graph.json``: nodes (corrected and odometry ``T_world_submap``, frames, keyframe camera centres), edges (odometry and loop, with
   sigmas and robust weights), covisibility edges with scores, every loop candidate with its verdict;
 * ``map.ply``: the fused point cloud (each submap subsampled to ``ply_points_per_submap`` points, in its
   final pose), coloured by height above the ground plane (yellow ground to dark green, as the DEM);
@@ -30,7 +30,7 @@ from vggt_slam_pp.dem.images import height_ramp
 from vggt_slam_pp.dem.map import fuse_layers
 from vggt_slam_pp.errors import EvaluationError, VggtSlamError
 from vggt_slam_pp.frontend.frontend import FrontendResult
-from vggt_slam_pp.geometry.lie import transform_points
+from vggt_slam_pp.geometry.lie import sim3_inverse, transform_points
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 
 log = logging.getLogger(__name__)
@@ -90,7 +90,9 @@ def write_keyframes_snapshot(out: Path, submaps: list, poses) -> None:
 def _write_graph(path: Path, result: FrontendResult, backend: BackendResult) -> None:
     nodes = [{"id": sm.id, "frames": [int(i) for i in sm.frame_indices],
               "T_world_submap": backend.poses[sm.id].tolist(),
-              "T_world_submap_odometry": backend.odometry_poses[sm.id].tolist()} for sm in result.submaps]
+              "T_world_submap_odometry": backend.odometry_poses[sm.id].tolist(),
+              "camera_centers": [sim3_inverse(T)[:3, 3].tolist() for T in sm.prediction.T_cam_submap]}
+             for sm in result.submaps]
     graph = {"nodes": nodes, "edges": backend.edges, "covisibility": backend.covisibility,
              "loop_candidates": backend.loops,
              "rejected": [c for c in backend.loops if not c["accepted"]],

@@ -35,6 +35,7 @@ import numpy as np
 
 from vggt_slam_pp import __version__
 from vggt_slam_pp.backend.backend import BackendConfig, BackendResult, SubmapMessage
+from vggt_slam_pp.backend.mapfile import write_manifest
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.backend.worker import BackendWorker
 from vggt_slam_pp.configs import PRESETS, from_dict, merged
@@ -161,6 +162,7 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     if resume and not PredictionStore(out / "predictions").all():
         raise InputError(f"nothing to resume in {out}: no saved predictions (predictions/submap_*.safetensors)")
     out.mkdir(parents=True, exist_ok=True)
+    (out / "map.json").unlink(missing_ok=True)  # the folder is a map again only when this run finishes
     reset_peak_rss()  # peak_rss_mb: this run's, not whatever the calling process did before
     atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
     t0 = time.perf_counter()
@@ -238,6 +240,8 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if error is not None:
         raise error
+    if backend_result is not None:
+        write_manifest(out, len(result.submaps))  # last: the folder is now a complete map
     return report
 
 

@@ -37,7 +37,9 @@ log = logging.getLogger(__name__)
 
 
 def write_backend_outputs(out: Path, source, result: FrontendResult, backend: BackendResult, store: SubmapStore,
-                          ply_points_per_submap: int = 20_000) -> dict:
+                          ply_points_per_submap: int = 20_000, prior=None) -> dict:
+    """``prior``: the :class:`~vggt_slam_pp.backend.mapfile.SavedMap` this recording was added to (its
+    submaps join ``graph.json``, ``map.ply`` and the DEM)."""
     out = Path(out)
     corrected = dataclasses.replace(result, T_world_submap=[backend.poses[sm.id] for sm in result.submaps])
     kf, kf_odo = corrected.keyframe_trajectory(), result.keyframe_trajectory()
@@ -46,7 +48,7 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
     allf = corrected.all_frame_trajectory()
     write_tum(out / "frames.txt", allf)
     write_kitti(out / "frames.kitti", allf)
-    _write_graph(out / "graph.json", result, backend)
+    _write_graph(out / "graph.json", result, backend, prior)
     accepted = [c for c in backend.loops if c["accepted"]]
     fields: dict = {
         "loops_accepted": len(accepted), "loops_rejected": len(backend.loops) - len(accepted),
@@ -87,12 +89,14 @@ def write_keyframes_snapshot(out: Path, submaps: list, poses) -> None:
     write_tum(Path(out) / "keyframes.txt", partial.keyframe_trajectory())
 
 
-def _write_graph(path: Path, result: FrontendResult, backend: BackendResult) -> None:
-    nodes = [{"id": sm.id, "frames": [int(i) for i in sm.frame_indices],
-              "T_world_submap": backend.poses[sm.id].tolist(),
-              "T_world_submap_odometry": backend.odometry_poses[sm.id].tolist(),
-              "camera_centers": [sim3_inverse(T)[:3, 3].tolist() for T in sm.prediction.T_cam_submap]}
-             for sm in result.submaps]
+def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, prior=None) -> None:
+    known = [(sm.id, sm.frames, sm.camera_centers) for sm in prior.submaps] if prior is not None else []
+    known += [(sm.id, sm.frame_indices, [sim3_inverse(T)[:3, 3] for T in sm.prediction.T_cam_submap])
+              for sm in result.submaps]
+    nodes = [{"id": i, "frames": [int(f) for f in frames], "T_world_submap": backend.poses[i].tolist(),
+              "T_world_submap_odometry": backend.odometry_poses[i].tolist(),
+              "camera_centers": [np.asarray(c, float).tolist() for c in centres],
+              "placed": i in backend.placed} for i, frames, centres in known]
     graph = {"nodes": nodes, "edges": backend.edges, "covisibility": backend.covisibility,
              "loop_candidates": backend.loops,
              "rejected": [c for c in backend.loops if not c["accepted"]],
@@ -123,11 +127,11 @@ def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store:
         return
     plane = GroundPlane.from_dict(backend.plane)
     clouds, lo, hi = [], np.full(2, np.inf), np.full(2, -np.inf)
-    for sm in result.submaps:
-        pts = store.get(sm.id)
+    for sid in sorted(backend.poses):
+        pts = store.get(sid)
         if len(pts) == 0:
             continue
-        world = transform_points(backend.poses[sm.id], pts)
+        world = transform_points(backend.poses[sid], pts)
         sel = world if len(world) <= per_submap else world[np.linspace(0, len(world) - 1, per_submap).astype(int)]
         clouds.append(sel.astype(np.float32))
         uv = plane.to_canonical(sel)[:, :2]
@@ -140,10 +144,10 @@ def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store:
     if factor > 1:
         log.info("DEM export at %.3f m/px (%dx the back-end's) to stay within %d px", grid.mpp, factor, max_side_px)
     layers = []
-    for sm in result.submaps:
-        pts = store.get(sm.id)
+    for sid in sorted(backend.poses):
+        pts = store.get(sid)
         if len(pts):
-            layer = rasterize(transform_points(backend.poses[sm.id], pts), grid, sm.id)
+            layer = rasterize(transform_points(backend.poses[sid], pts), grid, sid)
             layers.append((layer.origin_px, layer.heights.astype(np.float16)))
     cloud = np.concatenate(clouds)
     colors = _height_colors(plane.to_canonical(cloud)[:, 2])

@@ -138,27 +138,37 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
 
 
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
-        progress: Callable[[int, int], None] | None = None, resume: bool = False) -> dict:
+        progress: Callable[[int, int], None] | None = None, resume: bool = False,
+        prior_map: str | Path | None = None, localize_only: bool = False) -> dict:
     """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary.
 
     ``resume``: ``out_dir`` holds an interrupted run of the same input and configuration; the backbone
     calls it finished are read from its ``predictions/`` instead of being computed again, and everything
     else (keyframe selection, odometry, the back-end) runs again, deterministically, so the result is
-    the uninterrupted run's (docs/architecture.md, "Resume")."""
+    the uninterrupted run's (docs/frontend.md, "Resume").
+
+    ``prior_map``: a finished run's folder (a map, :mod:`vggt_slam_pp.backend.mapfile`). The recording
+    is added to it: its submaps are matched against the map by the same covisibility, place recognition
+    and registration, come out in the map's frame once a loop places them, and the extended map is
+    written to ``out_dir`` (never into the map's folder). ``localize_only``: the map is held fixed and
+    not extended; ``out_dir`` then holds the recording's trajectory in the map's frame, not a map
+    (docs/backend.md, "Maps")."""
     from threadpoolctl import threadpool_limits
 
     if config.blas_threads < 0:
         raise InputError(f"blas_threads must be >= 0 (0: the library default), got {config.blas_threads}")
     limit = threadpool_limits(config.blas_threads, user_api="blas") if config.blas_threads else nullcontext()
     with limit:
-        return _run(source, config, out_dir, backbone, progress, resume)
+        return _run(source, config, out_dir, backbone, progress, resume, prior_map, localize_only)
 
 
 def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None,
-         progress: Callable[[int, int], None] | None, resume: bool = False) -> dict:
+         progress: Callable[[int, int], None] | None, resume: bool = False, prior_map: str | Path | None = None,
+         localize_only: bool = False) -> dict:
     from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ResumeBackbone
 
     out = Path(out_dir)
+    prior = _open_prior_map(prior_map, out, config) if prior_map is not None else None
     if resume and not PredictionStore(out / "predictions").all():
         raise InputError(f"nothing to resume in {out}: no saved predictions (predictions/submap_*.safetensors)")
     out.mkdir(parents=True, exist_ok=True)
@@ -172,9 +182,11 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     store = None
     if (config.save_predictions or resume) and config.backbone.name != "replay":
         store = PredictionStore(out / "predictions", keep_existing=resume)
-    frontend = Frontend(backbone, config.frontend, store=store)
+    first_id = len(prior.submaps) if prior is not None else 0
+    frontend = Frontend(backbone, config.frontend, store=store, first_id=first_id)
     backend_config = _scale_aware(config.backend_config, backbone)
-    worker = BackendWorker(backend_config, out / "submaps") if config.backend else None
+    worker = BackendWorker(backend_config, out / "submaps", prior_map=(str(prior.folder), localize_only)
+                           if prior is not None else None) if config.backend else None
     feeder = _BackendFeeder(frontend, worker, out)
     n = len(source)
     error: BaseException | None = None
@@ -222,7 +234,13 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     if result is not None:
         _write_trajectories(out, result)
     if result is not None and backend_result is not None:
-        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps", 0)))
+        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps", 0),
+                                            prior=prior))
+        if prior is not None:
+            placed = set(backend_result.placed)
+            report["map_submaps"] = first_id
+            report["placed_submaps"] = sum(sm.id in placed for sm in result.submaps)
+            report["placed_fraction"] = report["placed_submaps"] / max(len(result.submaps), 1)
         if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
             report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
     if worker is not None:
@@ -240,9 +258,34 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if error is not None:
         raise error
-    if backend_result is not None:
-        write_manifest(out, len(result.submaps))  # last: the folder is now a complete map
+    if backend_result is not None and not localize_only:
+        write_manifest(out, first_id + len(result.submaps))  # last: the folder is now a complete map
     return report
+
+
+def _open_prior_map(folder: str | Path, out: Path, config: RunConfig):
+    """Check the map in ``folder`` and copy its submaps' points into ``out``'s store (the map's folder is
+    never written to)."""
+    import os
+    import shutil
+
+    from vggt_slam_pp.backend.mapfile import load_map
+
+    if not config.backend:
+        raise InputError("adding a recording to a map needs the back-end (drop --no-backend)")
+    saved = load_map(folder)
+    if out.resolve() == saved.folder.resolve():
+        raise InputError(f"--out must not be the map's folder {saved.folder}: a map is never modified in place")
+    store = out / "submaps"
+    store.mkdir(parents=True, exist_ok=True)
+    for sm in saved.submaps:
+        src, dst = saved.store.path(sm.id), store / saved.store.path(sm.id).name
+        dst.unlink(missing_ok=True)
+        try:
+            os.link(src, dst)  # the points never change: a hard link costs no space
+        except OSError:
+            shutil.copy2(src, dst)
+    return saved
 
 
 def _scale_aware(config: BackendConfig, backbone: Backbone) -> BackendConfig:
@@ -289,7 +332,7 @@ class _BackendFeeder:
             pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
             self.worker.store.put(sm.id, pts)
             centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
-            edge = self.frontend.edges[sm.id - 1] if sm.id > 0 else None
+            edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
             self.worker.submit(SubmapMessage(sm.id, centres, edge))
             self.sent += 1
         self.frontend.release_points(keep_last=1)

@@ -88,6 +88,7 @@ class BackendConfig:
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
+    unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
 
@@ -126,6 +127,7 @@ class BackendResult:
     mpp: float | None
     peak_rss_mb: float = 0.0  # of the back-end's process
     memory_trace: list = field(default_factory=list)  # (submaps done, RSS MiB of the back-end's process)
+    placed: list[int] = field(default_factory=list)  # submaps whose poses are in the map's frame
 
 
 def _subsample(points: np.ndarray, n: int) -> np.ndarray:
@@ -157,6 +159,50 @@ class Backend:
         self.memory_trace: list[tuple[int, float]] = []
         self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
         self._pending: list[int] = []  # indices in loops: verified, waiting for a consistent partner
+        # segments: chains of submaps linked by odometry. A recording added to a prior map starts a new one,
+        # unplaced (a part of the graph of its own) until a loop links it to a placed one
+        self.segment: dict[int, int] = {}  # submap id -> segment id (its first submap)
+        self.placed: set[int] = set()
+        self.frozen: set[int] = set()  # localisation only: the prior map's submaps, never moved nor re-indexed
+        self.index_new = True  # localisation only: new submaps query the map but do not join its gallery
+
+    def seed_map(self, saved, localize_only: bool = False) -> None:
+        """Start from a saved map (:class:`~vggt_slam_pp.backend.mapfile.SavedMap`, its points already in
+        this back-end's store): its submaps enter the graph at their poses with their odometry and loop
+        edges, and their layers the gallery, in the map's DEM plane and tiles; nothing is queried.
+        ``localize_only``: the map's submaps stay fixed and the new ones are not added to the gallery."""
+        from vggt_slam_pp.dem import DemGrid, GroundPlane
+
+        if self.graph.poses:
+            raise BackendError("a map can only seed an empty back-end")
+        grid = DemGrid.create(GroundPlane.from_dict(saved.plane), dataclasses.replace(
+            self.config.covisibility.dem, tile_size=saved.tile_size))
+        self.stage.set_grid(grid)
+        for sm in saved.submaps:
+            self.graph.add_node(sm.id, sm.T_world_submap)
+            self.odometry_poses[sm.id] = sm.T_world_submap.copy()
+            first = sm.id if sm.id == 0 or not any(e.kind == "odometry" and e.j == sm.id for e in saved.edges) \
+                else self.segment[sm.id - 1]
+            self.segment[sm.id] = first
+            self.placed.add(first)
+            points = self.store.get(sm.id)
+            if len(points) >= 3:
+                self._remember_extent(sm.id, points)
+                self.stage.add(sm.id, transform_points(sm.T_world_submap, _subsample(points, self.config.dem_max_points)))
+                self._layer_pose[sm.id] = sm.T_world_submap.copy()
+        for e in saved.edges:
+            self.graph.add_edge(e)
+        if localize_only:
+            self.frozen = set(self.graph.poses)
+            self.graph.anchors |= self.frozen
+            self.index_new = False
+        log.info("map seeded: %d submaps, %d edges%s", len(saved.submaps), len(saved.edges),
+                 " (localisation only)" if localize_only else "")
+
+    def _remember_extent(self, sid: int, points: np.ndarray) -> None:
+        self._centroid[sid] = points.mean(0)
+        lo, hi = points.min(0), points.max(0)
+        self._extent[sid] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
     # -- the per-submap step --------------------------------------------------------------------
     def add_submap(self, msg: SubmapMessage) -> PoseSnapshot:
@@ -167,11 +213,15 @@ class Backend:
         if e is None:
             T = np.eye(4)
             T_odo = np.eye(4)
+            self.segment[sid] = sid
+            if not self.graph.poses:  # the first recording defines the map's frame; a later one (a recording
+                self.placed.add(sid)  # beside a map) is its own part of the graph until a loop places it
         else:
             if e.prev not in self.graph.poses:
                 raise BackendError(f"odometry edge {e.prev}->{e.curr} refers to an unknown submap")
             T = self.graph.poses[e.prev] @ e.T_prev_curr
             T_odo = self.odometry_poses[e.prev] @ e.T_prev_curr
+            self.segment[sid] = self.segment[e.prev]
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
         if e is not None:
@@ -179,16 +229,16 @@ class Backend:
                                      self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded), "odometry",
                                      {"residual": e.residual, "degraded": e.degraded}))
         if len(points):
-            self._centroid[sid] = points.mean(0)
-            lo, hi = points.min(0), points.max(0)
-            self._extent[sid] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                                          for z in (lo[2], hi[2])])
+            self._remember_extent(sid, points)
         accepted: list[LoopResult] = []
         if len(points) >= 3:
             t0 = time.perf_counter()
             pw = transform_points(T, _subsample(points, self.config.dem_max_points))
-            res = self.stage.process(sid, pw, transform_points(T, msg.camera_centers))
-            self._layer_pose[sid] = T
+            unplaced = self.segment[sid] not in self.placed
+            res = self.stage.process(sid, pw, transform_points(T, msg.camera_centers), insert=self.index_new,
+                                     headings=self.config.unplaced_headings if unplaced else 1)
+            if self.index_new:
+                self._layer_pose[sid] = T
             self.covisibility += [{"query": c.query, "match": c.match, "score": c.score, "votes": c.votes,
                                    "source": c.source} for c in res.edges]
             self.timings["covisibility_s"] += time.perf_counter() - t0
@@ -220,7 +270,7 @@ class Backend:
         for k, (m, s) in enumerate(ranked[: self.config.candidates_per_query]):
             nxt = ranked[k + 1][1] if k + 1 < len(ranked) else 0.0
             out.append((m, s, s - nxt, "retrieval"))
-        if self.config.proximity_candidates and sid in self._centroid:
+        if self.config.proximity_candidates and sid in self._centroid and self.segment[sid] in self.placed:
             here = transform_points(self.graph.poses[sid], self._centroid[sid][None])[0]
             old = [j for j in self._centroid if j < sid - self.stage.config.index.exclude_recent]
             if old:
@@ -284,6 +334,7 @@ class Backend:
         return accepted
 
     def _add_loop(self, r: LoopResult) -> LoopResult:
+        self._place(r)
         grid = self.stage.grid
         s_m, _, _ = decompose_sim3(self.graph.poses[r.match])
         g = self.config.graph
@@ -292,6 +343,28 @@ class Backend:
         info = r.information if self.config.loop_information == "icp" else None
         self.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", r.to_dict(), info))
         return r
+
+    def _place(self, r: LoopResult) -> None:
+        """The first loop that links an unplaced recording (the query's segment) to a placed one moves the
+        whole recording by that loop's correction, so the pose graph starts from the merged estimate."""
+        seg, target = self.segment[r.query], self.segment[r.match]
+        if seg in self.placed or target not in self.placed:
+            return
+        C = r.correction
+        members = sorted(i for i, g in self.segment.items() if g == seg)
+        for i in members:
+            self.graph.poses[i] = C @ self.graph.poses[i]
+            self.odometry_poses[i] = C @ self.odometry_poses[i]
+            self.segment[i] = target
+            if i in self._layer_pose:
+                self.stage.relocate(i, transform_points(self.graph.poses[i],
+                                                        _subsample(self.store.get(i), self.config.dem_max_points)))
+                self._layer_pose[i] = self.graph.poses[i].copy()
+        log.info("submaps %d..%d placed in the map by loop %d->%d", members[0], members[-1], r.query, r.match)
+
+    def placed_submaps(self) -> list[int]:
+        """Submaps in a segment placed in the map's frame (all of them for a single recording)."""
+        return sorted(i for i, g in self.segment.items() if g in self.placed)
 
     def _consistent(self, r: LoopResult) -> list[int]:
         """Indices (in :attr:`loops`) of the verified loops, accepted or pending, that close a consistent
@@ -310,6 +383,8 @@ class Backend:
             dq, dm = abs(o.query - r.query), abs(o.match - r.match)
             if dq > c.consistency_submaps or dm > c.consistency_submaps or (dq == 0 and dm == 0):
                 continue
+            if self.segment[o.query] != self.segment[r.query] or self.segment[o.match] != self.segment[r.match]:
+                continue  # the cycle needs odometry between the two queries and between the two matches
             O_m = sim3_inverse(P[r.match]) @ P[o.match]
             O_q = sim3_inverse(P[r.query]) @ P[o.query]
             E = sim3_inverse(O_m @ o.T_match_query) @ r.T_match_query @ O_q
@@ -329,6 +404,8 @@ class Backend:
     def _odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`_bounds`) closes
         a consistent cycle with the odometry chain itself: it needs no partner loop."""
+        if self.segment[r.match] != self.segment[r.query]:
+            return False  # a loop that would place a recording needs a cycle-consistent partner
         b = self._bounds(r.match, r.query)
         centroid = transform_points(self.graph.poses[r.query], self._centroid[r.query][None])[0]
         log_s, angle, moved = correction_size(r.correction, centroid)
@@ -348,6 +425,8 @@ class Backend:
         """What odometry can have drifted between ``match`` and ``query`` (submap ids):
         :func:`~vggt_slam_pp.backend.registration.drift_bounds` over the chain between them in the
         current estimate, with its degraded edges."""
+        if self.segment.get(match) != self.segment.get(query):  # no odometry between them: physical limits
+            return LoopBounds(self.config.registration.max_scale_change, np.inf, 180.0)
         lo, hi = min(match, query), max(match, query)
         steps = self._steps(lo, hi)
         degraded = [float(steps[e.i - lo]) for e in self.graph.edges if e.kind == "odometry" and lo <= e.i < hi
@@ -435,4 +514,4 @@ class Backend:
             loops=[r.to_dict() for r in self.loops], seconds_per_submap=list(self.seconds),
             timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
             tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,
-            memory_trace=list(self.memory_trace))
+            memory_trace=list(self.memory_trace), placed=self.placed_submaps())

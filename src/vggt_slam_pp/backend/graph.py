@@ -3,7 +3,7 @@
 Nodes are ``T_world_submap`` (our convention: ``x_world = s R x_submap + t``). Edges measure
 ``T_i^-1 T_j`` (``T_ij``, submap j in submap i's frame): odometry edges with a Gaussian noise model
 from their alignment residual, loop edges with a robust kernel (Cauchy by default: measured to reject a
-bad loop a Huber kernel let through). The first submap has a prior.
+bad loop a Huber kernel let through). The first submap of each connected part of the graph has a prior.
 
 GTSAM's ``Similarity3(R, t_g, s)`` maps ``p -> s (R p + t_g)``, so ``t_g = t / s``; its tangent vector
 is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below.
@@ -93,6 +93,10 @@ class PoseGraph:
         self.poses: dict[int, np.ndarray] = {}
         self.edges: list[Edge] = []
         self.last_solve: dict = {}
+        # held at their pose in every solve, besides the first node of each connected part of the graph
+        # (its gauge: a recording that no loop has linked to the map yet is a part of its own): the nodes
+        # of a map used for localisation only
+        self.anchors: set[int] = set()
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -155,14 +159,13 @@ class PoseGraph:
         # made the result worse (see docs/backend.md), so it is off by default.
         stages = ["huber", "cauchy"] if kernel == "cauchy" and self.config.continuation else [kernel]
         free = set(self.poses) if window is None else {i for i in window if i in self.poses}
-        first = min(self.poses)
         touching = [e for e in self.edges if e.i in free or e.j in free]
         used: set[int] = set(free)
         for e in touching:
             used.update((e.i, e.j))
+        free -= self.anchors
         fixed = used - free
-        if first in used:
-            fixed.add(first)
+        fixed.update(used & (self._gauges() | self.anchors))
         if not fixed:  # a window disconnected from the anchor: pin its oldest node
             fixed.add(min(used))
         tight = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
@@ -202,6 +205,22 @@ class PoseGraph:
                            "iterations": iterations, "seconds": time.perf_counter() - t0,
                            "global": window is None}
         return out
+
+    def _gauges(self) -> set[int]:
+        """The first node of each connected part of the graph (odometry and loop edges)."""
+        parent = {i: i for i in self.poses}
+
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for e in self.edges:
+            a, b = root(e.i), root(e.j)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+        return {root(i) for i in self.poses}
 
     def _solve_gnc(self, graph, values, lm_params, is_loop: list[bool]):
         """Graduated non-convexity (GTSAM ``GncLMOptimizer``, truncated least squares) over plain Gaussian

@@ -90,14 +90,25 @@ def _behind(inbox, capacity: int) -> bool:
         return True
 
 
-def _serve(config: BackendConfig, folder: str, inbox, outbox, streaming_done) -> None:
-    """The worker process: build the back-end, then one snapshot per message until ``None``; while the
-    front-end streams (``streaming_done`` not set) it works ``worker_duty`` of the time."""
+def _build(config: BackendConfig, folder: str | Path, prior_map: tuple[str, bool] | None) -> Backend:
+    backend = Backend(config, SubmapStore(folder, config.cache_submaps))
+    if prior_map is not None:
+        from vggt_slam_pp.backend.mapfile import load_map
+
+        backend.seed_map(load_map(prior_map[0]), localize_only=prior_map[1])
+    return backend
+
+
+def _serve(config: BackendConfig, folder: str, inbox, outbox, streaming_done,
+           prior_map: tuple[str, bool] | None = None) -> None:
+    """The worker process: build the back-end (seeded with ``prior_map``: folder, localisation only), then
+    one snapshot per message until ``None``; while the front-end streams (``streaming_done`` not set) it
+    works ``worker_duty`` of the time."""
     parent = os.getppid()
     try:
         _lower_priority(config.worker_priority)
         _limit_threads(config.worker_threads, config.encoder != "hog")
-        backend = Backend(config, SubmapStore(folder, config.cache_submaps))
+        backend = _build(config, folder, prior_map)
         outbox.put(("ready", None))
         while True:
             try:
@@ -155,7 +166,7 @@ class BackendWorker:
     read :meth:`latest` for optimised poses, and :meth:`finish` for the final result."""
 
     def __init__(self, config: BackendConfig, folder: str | Path, mode: str | None = None,
-                 start_timeout_s: float = 300.0) -> None:
+                 start_timeout_s: float = 300.0, prior_map: tuple[str, bool] | None = None) -> None:
         mode = mode or config.worker
         if mode not in MODES:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
@@ -169,7 +180,7 @@ class BackendWorker:
         self.submitted = 0
         self.wait_s = 0.0  # time the caller spent blocked on a full inbox
         if mode == "inline":
-            self._backend: Backend | None = Backend(config, SubmapStore(self.folder, config.cache_submaps))
+            self._backend: Backend | None = _build(config, self.folder, prior_map)
             return
         import multiprocessing as mp
 
@@ -178,7 +189,7 @@ class BackendWorker:
         self._outbox = ctx.Queue()
         self._streaming_done = ctx.Event()
         self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox,
-                                                      self._streaming_done),
+                                                      self._streaming_done, prior_map),
                                  name="vggt-slam-pp-backend", daemon=True)
         _start_without_main(self._proc, config.worker_threads)
         self._backend = None

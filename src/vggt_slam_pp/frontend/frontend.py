@@ -123,8 +123,9 @@ class FrontendResult:
 class Frontend:
     """Feed frames with :meth:`process`; :meth:`finish` closes the last submap and returns the result."""
 
-    def __init__(self, backbone: Backbone, config: FrontendConfig | None = None, store=None) -> None:
+    def __init__(self, backbone: Backbone, config: FrontendConfig | None = None, store=None, first_id: int = 0) -> None:
         self.backbone = backbone
+        self.first_id = first_id  # id of the first submap (a recording added to a map of first_id submaps)
         self.config = config or FrontendConfig()
         c = self.config
         self.overlap = c.overlap or (1 if backbone.dense else max(2, min(4, c.submap_size // 4)))
@@ -188,7 +189,7 @@ class Frontend:
         return pred
 
     def _build(self, frames: list[Frame]) -> Submap:
-        sid = len(self.submaps)
+        sid = self.first_id + len(self.submaps)
         self._calls = 0
         prev = self.submaps[-1] if self.submaps else None
         in_prev = set(prev.frame_indices.tolist()) if prev is not None else set()

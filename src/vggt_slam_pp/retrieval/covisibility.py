@@ -126,7 +126,13 @@ class CovisibilityStage:
                           layer_structure(layer, self.grid.tile_size, c.geometry))
 
     def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
-                median_depth: float | None = None) -> StageResult:
+                median_depth: float | None = None, insert: bool = True, headings: int = 1) -> StageResult:
+        """Query the gallery with a new submap's layer and (``insert``) add its tiles.
+
+        ``headings`` > 1: the chips of copies of the submap turned about the vertical by multiples of
+        360 / ``headings`` degrees vote too (a submap whose heading in the map is unknown: DEM
+        descriptors are not rotation-invariant); the edges keep each match's best score.
+        """
         c = self.config
         t = {}
         t0 = time.perf_counter()
@@ -139,6 +145,8 @@ class CovisibilityStage:
             self.index = TileIndex(d.tiles.shape[2], c.index, self.encoder.name)
         t0 = time.perf_counter()
         edges = self.index.vote(submap_id, d.chips[d.chip_ok])
+        if headings > 1:
+            edges = self._vote_turned(submap_id, points_world, headings, edges)
         edges += self._sequence_edges(submap_id, {e.match for e in edges})
         t["vote_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -159,14 +167,41 @@ class CovisibilityStage:
                                            c.geometry)
         t["rerank_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        if insert:
+            self.add(submap_id, d)
+        t["index_s"] = time.perf_counter() - t0
+        self._previous = (submap_id, [candidates[0].match] if candidates else [])
+        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok])
+
+    def add(self, submap_id: int, described: _Described | np.ndarray) -> None:
+        """Insert a submap's tiles into the gallery without querying (``described``: its layer's
+        descriptors, or its points in the world frame; the grid must exist)."""
+        d = described if isinstance(described, _Described) else self._describe(submap_id, described)
+        if self.index is None:
+            self.index = TileIndex(d.tiles.shape[2], self.config.index, self.encoder.name)
         self._insert(submap_id, d)
         self._vlad_cells.append(d.vfeats[d.m > 0].reshape(-1, d.vfeats.shape[2]).astype(np.float16))
         self._cap_vlad_cells()
         if self.vocab is not None and self.vocab.needs_refresh(self._vlad_seen):
             self._train_vocabulary()
-        t["index_s"] = time.perf_counter() - t0
-        self._previous = (submap_id, [candidates[0].match] if candidates else [])
-        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok])
+
+    def _vote_turned(self, submap_id: int, points_world: np.ndarray, headings: int,
+                     edges: list[CovisibilityEdge]) -> list[CovisibilityEdge]:
+        from vggt_slam_pp.geometry.lie import so3_exp
+
+        best = {e.match: e for e in edges}
+        centre = points_world.mean(0)
+        for k in range(1, headings):
+            R = so3_exp(self.grid.plane.normal * (2 * np.pi * k / headings))
+            d = self._describe(submap_id, (points_world - centre) @ R.T + centre)
+            for e in self.index.vote(submap_id, d.chips[d.chip_ok]):
+                if e.match not in best or e.score > best[e.match].score:
+                    best[e.match] = e
+        return sorted(best.values(), key=lambda e: -e.score)[: self.config.index.top_k]
+
+    def set_grid(self, grid: DemGrid) -> None:
+        """Use ``grid`` (a saved map's plane and tiles) instead of fitting one to the first submap."""
+        self.grid = grid
 
     def confirm(self, query: int, matches: list[int]) -> None:
         """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the

@@ -408,14 +408,15 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
     return out
 
 
-def _second_pass(scene, start: float = 0.25):
-    """The same world driven the other way from another start: the trajectory reversed (cameras turned
-    round, so they look where they go), beginning ``start`` of the way along it; timestamps from 0."""
+def _second_pass(scene, start: float = 0.25, reverse: bool = True):
+    """The same world driven again from another start, ``start`` of the way along the trajectory;
+    ``reverse``: the other way (the trajectory reversed, cameras turned round so they look where they
+    go). Timestamps from 0."""
     from vggt_slam_pp.io.trajectory import Trajectory
 
     traj = scene.trajectory
     turn = np.diag([-1.0, 1.0, -1.0, 1.0])  # 180 deg about the camera's vertical (y down) axis
-    poses = traj.poses[::-1] @ turn
+    poses = traj.poses[::-1] @ turn if reverse else traj.poses
     k = int(start * len(poses))
     second = Trajectory(traj.timestamps[: len(poses) - k] - traj.timestamps[0], poses[k:])
     return dataclasses.replace(scene, trajectory=second, name=f"{scene.name}_second_pass")
@@ -423,7 +424,7 @@ def _second_pass(scene, start: float = 0.25):
 
 def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 320, height: int = 240,
                          overlap_threshold: float = 0.3, workdir: str = "runs/bench_relocalization", seed: int = 0,
-                         noise: str = "default", progress=None) -> dict:
+                         noise: str = "default", reverse: bool = True, progress=None) -> dict:
     """Map a synthetic world, then add a second pass through it (other direction, other start, other
     noise seed) with ``run(..., prior_map=...)``.
 
@@ -443,9 +444,9 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
 
     work = Path(workdir)
     first_dir = work / f"{scene}_{frames}_{width}x{height}_{seed}"
-    second_dir = work / f"{scene}_{frames}_{width}x{height}_{seed}_second"
+    second_dir = work / f"{scene}_{frames}_{width}x{height}_{seed}_second{'' if reverse else '_same_way'}"
     sc = make_scene(scene, frames=frames, width=width, height=height, seed=seed)
-    for folder, what in ((first_dir, sc), (second_dir, _second_pass(sc))):
+    for folder, what in ((first_dir, sc), (second_dir, _second_pass(sc, reverse=reverse))):
         if not (folder / "groundtruth.txt").is_file():
             if progress:
                 progress(f"render {folder.name}")
@@ -453,8 +454,10 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
     first, second = open_source(first_dir), open_source(second_dir)
     if progress:
         progress("map (first pass)")
-    map_dir, out_dir = work / f"map_{seed}_{noise}", work / f"second_{seed}_{noise}"
-    run(first, _synthetic_run_config(seed, noise=noise), map_dir)
+    map_dir = work / f"map_{seed}_{noise}"
+    out_dir = work / f"second_{seed}_{noise}{'' if reverse else '_same_way'}"
+    if not (map_dir / "map.json").is_file():
+        run(first, _synthetic_run_config(seed, noise=noise), map_dir)
     if progress:
         progress("second pass, added to the map")
     report = run(second, _synthetic_run_config(seed + 1, noise=noise), out_dir, prior_map=map_dir)
@@ -472,7 +475,7 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
     est = read_tum(out_dir / "keyframes.txt")
     keep = np.isin(est.timestamps, [t for n in nodes[n_map:] if n["id"] in placed
                                     for t in second.timestamps[np.asarray(n["frames"], int)]])
-    out = {"scene": scene, "noise": noise, "map_submaps": n_map, "second_pass_submaps": len(nodes) - n_map,
+    out = {"scene": scene, "noise": noise, "reverse": reverse, "map_submaps": n_map, "second_pass_submaps": len(nodes) - n_map,
            "placed_fraction": report["placed_fraction"], "loops_across": len(across), "false_placements": len(false),
            "false_pairs": false, "ate_map": map_ate.rmse, "ate_second_pass_map_frame": None,
            "ate_second_pass_odometry": report.get("ate_rmse_odometry"),

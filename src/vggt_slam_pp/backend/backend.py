@@ -89,6 +89,10 @@ class BackendConfig:
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
+    placement_votes: int = 3  # a recording is placed in a map by loops from this many of its submaps that agree
+    placement_log_scale: float = 0.1  # on its move within these (|log scale|, degrees, tiles at its centre)
+    placement_deg: float = 5.0
+    placement_trans_tiles: float = 2.0
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
 
@@ -317,7 +321,14 @@ class Backend:
                 continue
             log.debug("verified %d->%d: correction |log s| %.3f, %.1f deg, moves it %.2f", sid, match,
                       *correction_size(r.correction, transform_points(self.graph.poses[sid], points.mean(0)[None])[0]))
-            partners = self._consistent(r)
+            if self.segment[sid] not in self.placed and self.segment[match] in self.placed:
+                partners = self._placement(r)  # a loop that would place this recording in the map
+                if not partners:
+                    self._pending.append(len(self.loops))
+                    self.loops.append(dataclasses.replace(r, accepted=False, reason=PENDING))
+                    continue
+            else:
+                partners = self._consistent(r)
             if self.config.loop_consistency and not partners and not self._odometry_consistent(r):
                 self._pending.append(len(self.loops))
                 self.loops.append(dataclasses.replace(r, accepted=False, reason=PENDING))
@@ -343,6 +354,33 @@ class Backend:
         info = r.information if self.config.loop_information == "icp" else None
         self.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", r.to_dict(), info))
         return r
+
+    def _placement(self, r: LoopResult) -> list[int]:
+        """Pending loops (indices in :attr:`loops`) from the same unplaced recording to the map that agree
+        with ``r`` on where the recording lies, when together with ``r`` they come from at least
+        ``placement_votes`` distinct query submaps; else []. A place that merely looks like another (a
+        repetitive world) gives one or two loops at a time; the true place keeps giving them as the
+        recording moves on, all asking the same move of the recording."""
+        c = self.config
+        P = self.graph.poses
+        seg = self.segment[r.query]
+
+        def move(o: LoopResult) -> np.ndarray:  # the loop's correction of the recording, at the current poses
+            return P[o.match] @ o.T_match_query @ sim3_inverse(P[o.query])
+
+        C = move(r)
+        centre = np.mean([P[i][:3, 3] for i, g in self.segment.items() if g == seg], axis=0)
+        tol = c.placement_trans_tiles * self.stage.grid.tile_size
+        agree, queries = [], {r.query}
+        for k in self._pending:
+            o = self.loops[k]
+            if self.segment[o.query] != seg or self.segment[o.match] not in self.placed or o.T_match_query is None:
+                continue
+            log_s, angle, moved = correction_size(sim3_inverse(C) @ move(o), centre)
+            if log_s <= c.placement_log_scale and angle <= c.placement_deg and moved <= tol:
+                agree.append(k)
+                queries.add(o.query)
+        return agree if len(queries) >= c.placement_votes else []
 
     def _place(self, r: LoopResult) -> None:
         """The first loop that links an unplaced recording (the query's segment) to a placed one moves the

@@ -89,10 +89,11 @@ class BackendConfig:
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
+    unplaced_candidates: int = 6  # its best covisible submaps by votes are all registered
     placement_votes: int = 3  # a recording is placed in a map by loops from this many of its submaps that agree
-    placement_log_scale: float = 0.1  # on its move within these (|log scale|, degrees, tiles at its centre)
-    placement_deg: float = 5.0
-    placement_trans_tiles: float = 2.0
+    placement_log_scale: float = 0.15  # on its move within these (|log scale|, degrees, tiles at its centre)
+    placement_deg: float = 10.0
+    placement_trans_tiles: float = 3.0
     inject_wrong_candidates: float = 0.0  # fault injection: share of queries given a random candidate from
     # beyond the proximity radius (it goes through verification like any other)
 
@@ -267,11 +268,16 @@ class Backend:
         from, proximity the ones it has not; verification decides for both. With
         ``inject_wrong_candidates`` > 0, that share of queries also gets a random submap from elsewhere
         ("injected", fault testing)."""
-        ranked = [(c.match, c.score) for c in res.candidates]
-        seen = {m for m, _ in ranked}
-        ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
+        count = self.config.candidates_per_query
+        if self.segment[sid] in self.placed:
+            ranked = [(c.match, c.score) for c in res.candidates]
+            seen = {m for m, _ in ranked}
+            ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
+        else:  # where it lies is unknown: the re-ranking by DEM correlation near the estimate means nothing
+            ranked = [(c.match, c.score) for c in res.edges if c.source == "votes"]
+            count = self.config.unplaced_candidates
         out = []
-        for k, (m, s) in enumerate(ranked[: self.config.candidates_per_query]):
+        for k, (m, s) in enumerate(ranked[:count]):
             nxt = ranked[k + 1][1] if k + 1 < len(ranked) else 0.0
             out.append((m, s, s - nxt, "retrieval"))
         if self.config.proximity_candidates and sid in self._centroid and self.segment[sid] in self.placed:

@@ -141,3 +141,61 @@ def test_a_finished_run_is_a_map_and_damaged_maps_are_refused(sequence, tmp_path
         run(source, config, tmp_path / "map", backbone=_CrashAfter(make_backbone(config, source), 3))
     with pytest.raises(InputError, match="no map.json"):
         load_map(tmp_path / "map")
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory):
+    """A map of a synthetic block loop (300 frames) and the same images again from a quarter of the way,
+    as a second recording with other noise."""
+    from vggt_slam_pp.io.frames import FrameSubset
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    root = tmp_path_factory.mktemp("relocalise")
+    write_sequence(make_scene("loop", frames=300, width=160, height=120, seed=3), root / "seq")
+    source = open_source(root / "seq")
+    report = run(source, _synthetic(0), root / "map")
+    return root, source, FrameSubset(source, np.arange(75, 300)), report
+
+
+def _synthetic(seed: int) -> RunConfig:
+    import dataclasses
+
+    from vggt_slam_pp.backend.backend import BackendConfig
+
+    base = RunConfig.preset("synthetic")
+    return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, seed=seed),
+                               backend_config=BackendConfig(worker="inline"))
+
+
+def test_a_second_recording_is_placed_in_the_map_and_extends_it(mapped, tmp_path):
+    from vggt_slam_pp.backend.mapfile import load_map
+    from vggt_slam_pp.eval import compute_ate
+
+    root, source, second, first = mapped
+    before = {p.name: p.read_bytes() for p in (root / "map").iterdir() if p.is_file()}
+    report = run(second, _synthetic(1), tmp_path / "more", prior_map=root / "map")
+    assert report["map_submaps"] == first["submaps"] and report["placed_fraction"] == 1.0
+    assert {p.name: p.read_bytes() for p in (root / "map").iterdir() if p.is_file()} == before  # map untouched
+    extended = load_map(tmp_path / "more")
+    assert len(extended.submaps) == first["submaps"] + report["submaps"]
+    # the second recording comes out in the map's frame: the map's own alignment to the ground truth fits it
+    gt = source.frame_ground_truth()[1]
+    T = compute_ate(gt, read_tum(root / "map" / "keyframes.txt"), "sim3").T_ref_est
+    est = read_tum(tmp_path / "more" / "keyframes.txt")
+    truth = np.array([gt.poses[np.argmin(np.abs(gt.timestamps - t))][:3, 3] for t in est.timestamps])
+    err = np.linalg.norm(est.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3] - truth, axis=1)
+    assert np.sqrt(np.mean(err**2)) <= 3 * first["ate_rmse"] + 0.05, (np.sqrt(np.mean(err**2)), first["ate_rmse"])
+
+
+def test_localize_only_keeps_the_map_fixed_and_refuses_to_write_into_it(mapped, tmp_path):
+    root, _, second, first = mapped
+    report = run(second, _synthetic(1), tmp_path / "loc", prior_map=root / "map", localize_only=True)
+    assert report["placed_fraction"] == 1.0 and not (tmp_path / "loc" / "map.json").exists()  # not a map
+    nodes = json.loads((tmp_path / "loc" / "graph.json").read_text())["nodes"]
+    saved = json.loads((root / "map" / "graph.json").read_text())["nodes"]
+    for a, b in zip(nodes[: first["submaps"]], saved, strict=True):
+        assert np.allclose(a["T_world_submap"], b["T_world_submap"], atol=1e-9)
+    with pytest.raises(InputError, match="never modified in place"):
+        run(second, _synthetic(1), root / "map", prior_map=root / "map")
+    with pytest.raises(InputError, match="not a map"):
+        run(second, _synthetic(1), tmp_path / "x", prior_map=tmp_path / "loc")

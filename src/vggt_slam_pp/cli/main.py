@@ -188,6 +188,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from vggt_slam_pp.io.trajectory import atomic_write_text
     from vggt_slam_pp.pipeline import RunConfig, run
 
+    if args.localize_only and not args.map:
+        raise InputError("--localize-only needs --map DIR")
     if args.resume:
         given = [f"--{dest.replace('_', '-')}" for dest in (*_RUN_FLAGS, *_INPUT_FLAGS, "out", "config", "preset")
                  if getattr(args, dest) not in (None, _INPUT_FLAGS.get(dest))]
@@ -204,20 +206,23 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.input is None or args.out is None:
             raise InputError("run needs --input and --out (or --resume DIR)")
         given_input = {dest: getattr(args, dest) for dest in _INPUT_FLAGS}
-        given_input.update(input=str(args.input.resolve()), gt=str(args.gt.resolve()) if args.gt else None)
+        given_input.update(input=str(args.input.resolve()), gt=str(args.gt.resolve()) if args.gt else None,
+                           map=str(args.map.resolve()) if args.map else None)
         config, out = run_config_from_args(args), args.out
     source = _open_input(given_input)
     if not args.resume:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "input.json", json.dumps(given_input, indent=2))
     report = run(source, config, out, progress=_progress(len(source), "frames", disable=args.quiet),
-                 resume=bool(args.resume))
+                 resume=bool(args.resume), prior_map=given_input.get("map"),
+                 localize_only=bool(given_input.get("localize_only")))
     _print_summary(report, out)
     return 0
 
 
 # run flags that choose the input (and their defaults): input.json keeps them for --resume
-_INPUT_FLAGS = {"input": None, "layout": "auto", "gt": None, "stride": 1, "max_frames": None}
+_INPUT_FLAGS = {"input": None, "layout": "auto", "gt": None, "stride": 1, "max_frames": None, "map": None,
+                "localize_only": False}
 
 
 def _open_input(given: dict):
@@ -228,10 +233,17 @@ def _open_input(given: dict):
     return FrameSubset.every(source, 1, given["max_frames"]) if given["max_frames"] else source
 
 
+def _metres(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f} m"
+
+
 def _print_summary(report: dict, out) -> None:
     msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
     print(msg)
+    if "placed_fraction" in report:
+        print(f"map: {report['map_submaps']} submaps; {report['placed_submaps']} of this recording's {report['submaps']} "
+              f"submaps placed in it ({100 * report['placed_fraction']:.0f} %); the others keep their own frame")
     if report.get("resumed_backbone_calls"):
         print(f"resumed: {report['resumed_backbone_calls']} backbone calls read from predictions/")
     edges = report.get("edges", [])
@@ -299,6 +311,18 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"{r['found']} of {r['positives']} revisits registered correctly from a displaced estimate "
             f"(recall {r['recall']:.2f}), {r['false_accepted']} of {r['negatives']} other places accepted; "
             f"{r['seconds_median']:.2f} s per pair (median); outcomes {r['outcomes']}"))
+    elif args.suite == "relocalization":
+        rows = [benchmarks.bench_relocalization(frames=args.frames, seed=args.seed, noise=args.noise, reverse=reverse,
+                                                workdir=str(args.workdir or "runs/bench_relocalization"),
+                                                progress=lambda name: print(f"{name} ...", file=sys.stderr))
+                for reverse in (True, False)]
+        result = {"passes": rows, **{k: rows[0][k] for k in ("placed_fraction", "false_placements", "ate_map",
+                                                              "ate_second_pass_map_frame")}}
+        summary = "\n".join(
+            f"second pass {'the other way' if r['reverse'] else 'the same way'}: {r['second_pass_submaps']} submaps, "
+            f"placed {r['placed_fraction']:.2f} (target >= 0.9), false placements {r['false_placements']} (target 0), "
+            f"ATE in the map's frame {_metres(r['ate_second_pass_map_frame'])} (map {_metres(r['ate_map'])}; target "
+            "<= 2x)" for r in rows)
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
                                          seed=args.seed)
@@ -433,6 +457,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_synth)
     r = sub.add_parser("run", help="run the system on an input and write trajectories and a report")
     r.add_argument("--input", type=Path, help="image folder, video or dataset folder")
+    r.add_argument("--map", type=Path, metavar="DIR",
+                   help="add this recording to the map in DIR (a finished run): it comes out in the map's frame once "
+                        "loops place it, and the extended map is written to --out (DIR is never modified)")
+    r.add_argument("--localize-only", action="store_true", default=False,
+                   help="with --map: localise in the map without changing or extending it")
     r.add_argument("--resume", type=Path, metavar="DIR",
                    help="continue the interrupted run in DIR (its input.json and config.json) from its last "
                         "finished submap; the result equals an uninterrupted run")
@@ -477,8 +506,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks: dem (rasterisation), retrieval (HNSW recall and latency), "
                                      "covisibility, loops (the whole system on revisits), registration (loop "
-                                     "registration from a displaced estimate), memory (long run), frontend")
-    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "registration", "memory", "frontend"))
+                                     "registration from a displaced estimate), memory (long run), frontend, "
+                                     "relocalization (a second recording added to a map)")
+    b.add_argument("suite", choices=("dem", "retrieval", "covisibility", "loops", "registration", "memory", "frontend",
+                                     "relocalization"))
     b.add_argument("--runs", type=int, default=5, help="frontend: runs per sequence, seeds 0..N-1 (default 5)")
     b.add_argument("--data", type=Path, help="frontend: folder with euroc_mh05_sample/ and strecha_castle_p30_loop/ "
                                              "(default: ../shared/data when present)")

@@ -48,12 +48,11 @@ from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
 from vggt_slam_pp.outputs import json_default, write_backend_outputs, write_keyframes_snapshot
+from vggt_slam_pp.plugins import BACKBONES
+from vggt_slam_pp.plugins import load as load_plugin
 from vggt_slam_pp.resources import peak_rss_mb, reset_peak_rss, rss_mb
 
 log = logging.getLogger(__name__)
-
-BACKBONES = ("vggt", "simulated", "colmap", "replay")
-
 
 @dataclass(frozen=True)
 class BackboneConfig:
@@ -106,35 +105,8 @@ class RunConfig:
 
 
 def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
-    """Instantiate the configured backbone for ``source``."""
-    b = config.backbone
-    if b.name == "simulated":
-        from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
-
-        matched = source.frame_ground_truth()
-        if matched is None:
-            raise FrontendError("the simulated backbone needs ground truth (a synthetic sequence from `synth`)")
-        idx, gt = matched
-        noise = SimulatedNoise.profile(b.noise, b.seed)
-        return SimulatedBackbone(dict(zip((int(i) for i in idx), gt.poses, strict=True)), noise,
-                                 stride=max(b.stride, 1) * 2)
-    if b.name == "vggt":
-        from vggt_slam_pp.frontend.backbones.vggt import VggtBackbone
-
-        return VggtBackbone(b.weights, device=b.device, stride=b.stride)
-    if b.name == "colmap":
-        from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
-
-        return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
-                              deterministic=b.deterministic)
-    if b.name == "replay":
-        from vggt_slam_pp.frontend.backbones.replay import ReplayBackbone
-
-        if not b.replay_dir:
-            raise FrontendError("the replay backbone needs the folder of a previous run (--replay DIR)")
-        folder = Path(b.replay_dir)
-        return ReplayBackbone(folder / "predictions" if (folder / "predictions").is_dir() else folder)
-    raise FrontendError(f"unknown backbone {b.name!r}; choose one of {', '.join(BACKBONES)}")
+    """Instantiate the configured backbone for ``source`` (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
+    return load_plugin(BACKBONES, config.backbone.name, "backbone", FrontendError)(config, source)
 
 
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,

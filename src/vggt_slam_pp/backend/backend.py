@@ -143,13 +143,13 @@ def _subsample(points: np.ndarray, n: int) -> np.ndarray:
 
 class Backend:
     def __init__(self, config: BackendConfig, store: SubmapStore, encoder=None) -> None:
-        from vggt_slam_pp.retrieval.encoders import make_encoder
+        from vggt_slam_pp.errors import RetrievalError
+        from vggt_slam_pp.plugins import ENCODERS, load
 
         self.config = config
         self.store = store
         if encoder is None:
-            kwargs = {"weights": config.encoder_weights} if config.encoder == "dinov2" else {}
-            encoder = make_encoder(config.encoder, **kwargs)
+            encoder = load(ENCODERS, config.encoder, "encoder", RetrievalError).from_config(config.encoder_weights)
         self.stage = CovisibilityStage(encoder, config.covisibility)
         self.graph = PoseGraph(config.graph)
         self.odometry_poses: dict[int, np.ndarray] = {}

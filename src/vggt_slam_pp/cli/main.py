@@ -17,6 +17,7 @@ import numpy as np
 from vggt_slam_pp import __version__
 from vggt_slam_pp.configs import PRESETS
 from vggt_slam_pp.errors import VggtSlamError
+from vggt_slam_pp.plugins import BACKBONES, ENCODERS
 
 log = logging.getLogger("vggt_slam_pp")
 
@@ -471,12 +472,12 @@ def build_parser() -> argparse.ArgumentParser:
                            f"{name}: {what}" for name, (what, _) in PRESETS.items()))
     start.add_argument("--config", type=Path, help="start from this configuration file (a run's config.json); "
                                                    "flags given with it override it")
-    r.add_argument("--backbone", choices=("vggt", "simulated", "colmap", "replay"), help="default: the preset's")
+    r.add_argument("--backbone", choices=list(BACKBONES), help="default: the preset's")
     r.add_argument("--out", type=Path, help="output folder")
     r.add_argument("--calibrated", action="store_true", default=None,
                    help="use the dataset's intrinsics and distortion (undistort / known camera)")
     r.add_argument("--no-backend", action="store_true", default=None, help="front-end only (odometry)")
-    r.add_argument("--encoder", choices=("hog", "dinov2"),
+    r.add_argument("--encoder", choices=list(ENCODERS),
                    help="DEM encoder for covisibility (default hog: weight-free)")
     r.add_argument("--encoder-weights", default=None, help="dinov2: weights file or hub name")
     r.add_argument("--layout", default="auto", help="input layout (default: detected)")

@@ -42,6 +42,11 @@ class Encoder(ABC):
         """Dense features used for VLAD (default: the same as :meth:`encode`)."""
         return self.encode(image)
 
+    @classmethod
+    def from_config(cls, weights: str | None = None) -> Encoder:
+        """The encoder a run configures (``BackendConfig.encoder_weights``: for encoders with weights)."""
+        return cls()
+
 
 class HogEncoder(Encoder):
     name = "hog"
@@ -74,6 +79,10 @@ class HogEncoder(Encoder):
 class DinoV2Encoder(Encoder):
     name = "dinov2"
     patch_px = 14
+
+    @classmethod
+    def from_config(cls, weights: str | None = None) -> DinoV2Encoder:
+        return cls(weights=weights)
 
     def __init__(self, model=None, name: str = "dinov2_vitb14", weights: str | None = None, device: str = "cpu",
                  value_layer: int | None = None, allow_download: bool = True) -> None:
@@ -118,8 +127,7 @@ class DinoV2Encoder(Encoder):
 
 
 def make_encoder(name: str, **kwargs) -> Encoder:
-    if name == "hog":
-        return HogEncoder(**kwargs)
-    if name == "dinov2":
-        return DinoV2Encoder(**kwargs)
-    raise RetrievalError(f"unknown encoder {name!r}; choose 'hog' or 'dinov2'")
+    """The encoder registered as ``name`` (:data:`vggt_slam_pp.plugins.ENCODERS`) built with ``kwargs``."""
+    from vggt_slam_pp.plugins import ENCODERS, load
+
+    return load(ENCODERS, name, "encoder", RetrievalError)(**kwargs)

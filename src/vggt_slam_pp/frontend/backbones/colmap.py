@@ -45,6 +45,7 @@ import shutil
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -53,6 +54,10 @@ from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
+
+if TYPE_CHECKING:
+    from vggt_slam_pp.io.frames import FrameSource
+    from vggt_slam_pp.pipeline import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -395,3 +400,10 @@ class ColmapBackbone(Backbone):
                                 info={"registered": registered, "points3D": rec.num_points3D(),
                                       "mean_reprojection_error": rec.compute_mean_reprojection_error(),
                                       **({"anchor_frames": anchor} if anchor else {})})
+
+
+def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
+    """The ``colmap`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
+    b = config.backbone
+    return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
+                          deterministic=b.deterministic)

@@ -11,6 +11,7 @@ import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,10 @@ from vggt_slam_pp.errors import FrontendError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.io.frames import Frame
+
+if TYPE_CHECKING:
+    from vggt_slam_pp.io.frames import FrameSource
+    from vggt_slam_pp.pipeline import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -154,3 +159,12 @@ class ResumeBackbone(Backbone):
 
     def close(self) -> None:
         self.live.close()
+
+
+def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
+    """The ``replay`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`): an earlier run's predictions."""
+    b = config.backbone
+    if not b.replay_dir:
+        raise FrontendError("the replay backbone needs the folder of a previous run (--replay DIR)")
+    folder = Path(b.replay_dir)
+    return ReplayBackbone(folder / "predictions" if (folder / "predictions").is_dir() else folder)

@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,6 +47,10 @@ from vggt_slam_pp.frontend.backbones.base import Backbone, dense_observations
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_exp, se3_inverse, so3_exp
 from vggt_slam_pp.io.frames import Frame
+
+if TYPE_CHECKING:
+    from vggt_slam_pp.io.frames import FrameSource
+    from vggt_slam_pp.pipeline import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -179,3 +184,14 @@ class SimulatedBackbone(Backbone):
         return SubmapPrediction(np.array([f.index for f in frames]), T_cam_submap, Ks, (h, w_),
                                 np.repeat(np.eye(3)[None], S, 0), pts, conf, pix, keys, valid,
                                 dense=True, info={"scale_error": scale, "metric": True})
+
+
+def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
+    """The ``simulated`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`): ground truth of ``source``."""
+    matched = source.frame_ground_truth()
+    if matched is None:
+        raise FrontendError("the simulated backbone needs ground truth (a synthetic sequence from `synth`)")
+    idx, gt = matched
+    b = config.backbone
+    return SimulatedBackbone(dict(zip((int(i) for i in idx), gt.poses, strict=True)),
+                             SimulatedNoise.profile(b.noise, b.seed), stride=max(b.stride, 1) * 2)

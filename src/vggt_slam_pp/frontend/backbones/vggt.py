@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -20,6 +21,10 @@ from vggt_slam_pp.frontend.backbones.base import Backbone, dense_observations
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
+
+if TYPE_CHECKING:
+    from vggt_slam_pp.io.frames import FrameSource
+    from vggt_slam_pp.pipeline import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -92,3 +97,9 @@ class VggtBackbone(Backbone):
 
     def close(self) -> None:
         self.model = None
+
+
+def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
+    """The ``vggt`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
+    b = config.backbone
+    return VggtBackbone(b.weights, device=b.device, stride=b.stride)

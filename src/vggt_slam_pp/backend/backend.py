@@ -189,7 +189,8 @@ class Backend:
             first = sm.id if sm.id == 0 or not any(e.kind == "odometry" and e.j == sm.id for e in saved.edges) \
                 else self.segment[sm.id - 1]
             self.segment[sm.id] = first
-            self.placed.add(first)
+            if sm.placed:
+                self.placed.add(first)
             points = self.store.get(sm.id)
             if len(points) >= 3:
                 self._remember_extent(sm.id, points)
@@ -394,7 +395,8 @@ class Backend:
         seg, target = self.segment[r.query], self.segment[r.match]
         if seg in self.placed or target not in self.placed:
             return
-        C = r.correction
+        P = self.graph.poses
+        C = P[r.match] @ r.T_match_query @ sim3_inverse(P[r.query])  # at the current poses, not the verification's
         members = sorted(i for i, g in self.segment.items() if g == seg)
         for i in members:
             self.graph.poses[i] = C @ self.graph.poses[i]
@@ -427,7 +429,8 @@ class Backend:
             dq, dm = abs(o.query - r.query), abs(o.match - r.match)
             if dq > c.consistency_submaps or dm > c.consistency_submaps or (dq == 0 and dm == 0):
                 continue
-            if self.segment[o.query] != self.segment[r.query] or self.segment[o.match] != self.segment[r.match]:
+            seg = self.segment.get
+            if seg(o.query) != seg(r.query) or seg(o.match) != seg(r.match):
                 continue  # the cycle needs odometry between the two queries and between the two matches
             O_m = sim3_inverse(P[r.match]) @ P[o.match]
             O_q = sim3_inverse(P[r.query]) @ P[o.query]
@@ -448,7 +451,7 @@ class Backend:
     def _odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`_bounds`) closes
         a consistent cycle with the odometry chain itself: it needs no partner loop."""
-        if self.segment[r.match] != self.segment[r.query]:
+        if self.segment.get(r.match) != self.segment.get(r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         b = self._bounds(r.match, r.query)
         centroid = transform_points(self.graph.poses[r.query], self._centroid[r.query][None])[0]

@@ -31,6 +31,7 @@ class SavedSubmap:
     frames: np.ndarray  # [S] source frame indices of its keyframes (of the recording that made it)
     T_world_submap: np.ndarray  # [4,4] optimised pose
     camera_centers: np.ndarray  # [S,3] its keyframes' camera centres, submap frame
+    placed: bool = True  # in the map's frame (False: a recording no loop has placed in it yet)
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +97,8 @@ def load_map(folder: str | Path) -> SavedMap:
         graph = json.loads((folder / "graph.json").read_text())
         config = json.loads((folder / "config.json").read_text())
         submaps = [SavedSubmap(int(d["id"]), np.asarray(d["frames"], np.int64), np.asarray(d["T_world_submap"], float),
-                               np.asarray(d["camera_centers"], float).reshape(-1, 3)) for d in graph["nodes"]]
+                               np.asarray(d["camera_centers"], float).reshape(-1, 3), bool(d.get("placed", True)))
+                   for d in graph["nodes"]]
         edges = [_edge(d) for d in graph["edges"]]
         plane, tile_size = graph["plane"], float(graph["tile_size"])
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:

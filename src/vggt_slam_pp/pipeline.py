@@ -54,6 +54,7 @@ from vggt_slam_pp.resources import peak_rss_mb, reset_peak_rss, rss_mb
 
 log = logging.getLogger(__name__)
 
+
 @dataclass(frozen=True)
 class BackboneConfig:
     name: str = "simulated"

@@ -184,6 +184,19 @@ def run_config_from_args(args: argparse.Namespace):
     return RunConfig.from_dict(data)
 
 
+# run flags that choose the input (and their defaults): input.json keeps them for --resume
+_INPUT_FLAGS = {"input": None, "layout": "auto", "gt": None, "stride": 1, "max_frames": None, "map": None,
+                "localize_only": False}
+
+
+def _open_input(given: dict):
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.io.frames import FrameSubset
+
+    source = open_source(given["input"], layout=given["layout"], ground_truth=given["gt"], stride=given["stride"])
+    return FrameSubset.every(source, 1, given["max_frames"]) if given["max_frames"] else source
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from vggt_slam_pp.errors import InputError
     from vggt_slam_pp.io.trajectory import atomic_write_text
@@ -219,19 +232,6 @@ def cmd_run(args: argparse.Namespace) -> int:
                  localize_only=bool(given_input.get("localize_only")))
     _print_summary(report, out)
     return 0
-
-
-# run flags that choose the input (and their defaults): input.json keeps them for --resume
-_INPUT_FLAGS = {"input": None, "layout": "auto", "gt": None, "stride": 1, "max_frames": None, "map": None,
-                "localize_only": False}
-
-
-def _open_input(given: dict):
-    from vggt_slam_pp.io import open_source
-    from vggt_slam_pp.io.frames import FrameSubset
-
-    source = open_source(given["input"], layout=given["layout"], ground_truth=given["gt"], stride=given["stride"])
-    return FrameSubset.every(source, 1, given["max_frames"]) if given["max_frames"] else source
 
 
 def _metres(value: float | None) -> str:

@@ -243,8 +243,10 @@ def _print_summary(report: dict, out) -> None:
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
     print(msg)
     if "placed_fraction" in report:
+        rest = report["submaps"] - report["placed_submaps"]
         print(f"map: {report['map_submaps']} submaps; {report['placed_submaps']} of this recording's {report['submaps']} "
-              f"submaps placed in it ({100 * report['placed_fraction']:.0f} %); the others keep their own frame")
+              f"submaps placed in it ({100 * report['placed_fraction']:.0f} %)"
+              + (f"; {rest} not placed keep their own frame" if rest else ""))
     if report.get("resumed_backbone_calls"):
         print(f"resumed: {report['resumed_backbone_calls']} backbone calls read from predictions/")
     edges = report.get("edges", [])

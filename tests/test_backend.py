@@ -420,3 +420,19 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     far = loop(13, 9, sim3_inverse(P[9]) @ C @ P[13])  # too far from the others to be compared
     backend.loops = list(true)
     assert backend._consistent(far) == []
+
+
+def test_every_part_of_the_pose_graph_has_its_own_gauge():
+    """A recording no loop has linked to the map is a part of its own: its first node is held, so a solve
+    is defined; anchored nodes never move."""
+    g = PoseGraph(GraphConfig())
+    for i in range(6):
+        g.add_node(i, make_sim3(1.0, np.eye(3), np.array([float(i), 0.0, 0.0])))
+    sig = np.full(7, 0.01)
+    for i, j in ((0, 1), (1, 2), (3, 4)):
+        g.add_edge(Edge(i, j, make_sim3(1.0, np.eye(3), np.array([1.2, 0.0, 0.0])), sig, "odometry"))
+    assert g.component_roots() == {0: 0, 1: 0, 2: 0, 3: 3, 4: 3, 5: 5}
+    g.anchors.add(1)
+    g.optimize()
+    assert np.allclose(g.poses[1][:3, 3], [1.0, 0, 0]) and np.allclose(g.poses[3][:3, 3], [3.0, 0, 0])
+    assert np.allclose(g.poses[2][:3, 3], [2.2, 0, 0], atol=1e-6) and np.allclose(g.poses[4][:3, 3], [4.2, 0, 0])

@@ -227,6 +227,12 @@ def test_presets_and_bad_configuration_files(tmp_path, capsys):
     bad.write_text('{"frontend": {"submap_sise": 8}}')
     with pytest.raises(InputError, match=r"config.json.frontend: unknown key\(s\) submap_sise"):
         RunConfig.load(bad)
+    bad.write_text('{"frontend": {"submap_size": "8"}}')
+    with pytest.raises(InputError, match="submap_size: '8' is not a int"):
+        RunConfig.load(bad)
+    bad.write_text('{"frontend": 5}')
+    with pytest.raises(InputError, match="frontend: 5 is not a section"):
+        RunConfig.load(bad)
     older = tmp_path / "older.json"
     older.write_text('{"backbone": {"name": "colmap"}}')  # missing keys keep their defaults
     assert RunConfig.load(older).backbone.name == "colmap" and RunConfig.load(older).frontend.submap_size == 32

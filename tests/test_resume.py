@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -62,6 +63,8 @@ def test_a_resumed_run_equals_the_uninterrupted_one(sequence, tmp_path):
     source = open_source(sequence)
     config = _config(worker="inline")
     whole = run(source, config, tmp_path / "whole")
+    other = dataclasses.replace(config, backbone=dataclasses.replace(config.backbone, seed=7))
+    run(source, other, tmp_path / "cut")  # an earlier, different run in the same folder: never replayed
     with pytest.raises(KeyboardInterrupt):
         run(source, config, tmp_path / "cut", backbone=_CrashAfter(make_backbone(config, source), 5))
     assert len(list((tmp_path / "cut" / "predictions").glob("*.safetensors"))) == 5
@@ -172,10 +175,15 @@ def test_a_second_recording_is_placed_in_the_map_and_extends_it(mapped, tmp_path
     from vggt_slam_pp.eval import compute_ate
 
     root, source, second, first = mapped
-    before = {p.name: p.read_bytes() for p in (root / "map").iterdir() if p.is_file()}
+    def contents():
+        return {str(p): p.read_bytes() for p in sorted((root / "map").rglob("*")) if p.is_file()}
+
+    before = contents()
     report = run(second, _synthetic(1), tmp_path / "more", prior_map=root / "map")
     assert report["map_submaps"] == first["submaps"] and report["placed_fraction"] == 1.0
-    assert {p.name: p.read_bytes() for p in (root / "map").iterdir() if p.is_file()} == before  # map untouched
+    assert main(["run", "--input", str(root / "seq"), "--preset", "synthetic", "--map", str(root / "map"),
+                 "--out", str(root / "map"), "-q"]) == 2  # refused before anything is written
+    assert contents() == before  # the map is untouched, its points and DEM included
     extended = load_map(tmp_path / "more")
     assert len(extended.submaps) == first["submaps"] + report["submaps"]
     # the second recording comes out in the map's frame: the map's own alignment to the ground truth fits it

@@ -454,8 +454,8 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
     first, second = open_source(first_dir), open_source(second_dir)
     if progress:
         progress("map (first pass)")
-    map_dir = work / f"map_{seed}_{noise}"
-    out_dir = work / f"second_{seed}_{noise}{'' if reverse else '_same_way'}"
+    map_dir = work / f"map_{scene}_{frames}_{width}x{height}_{seed}_{noise}"
+    out_dir = work / f"second_{scene}_{frames}_{width}x{height}_{seed}_{noise}{'' if reverse else '_same_way'}"
     if not (map_dir / "map.json").is_file():
         run(first, _synthetic_run_config(seed, noise=noise), map_dir)
     if progress:

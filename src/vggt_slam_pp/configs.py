@@ -28,6 +28,27 @@ def _dataclass_in(hint) -> type | None:
     return None
 
 
+def _fits(value, hint) -> bool:
+    """Whether ``value`` (from JSON) fits a field's type hint; hints other than plain types pass."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if typing.get_origin(hint) is tuple or hint is tuple:
+        return isinstance(value, (list, tuple))
+    if dataclasses.is_dataclass(hint):
+        return isinstance(value, dict)
+    return True
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     """``cls`` built from ``data`` (nested dictionaries for nested dataclasses; lists become tuples where
     the field is a tuple).
@@ -45,6 +66,8 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for name, value in data.items():
+        if not _fits(value, hints[name]):
+            raise InputError(f"{where}.{name}: {value!r} is not a {_name(hints[name])}")
         sub = _dataclass_in(hints[name])
         if sub is not None and isinstance(value, dict):
             value = from_dict(sub, value, f"{where}.{name}")
@@ -55,6 +78,12 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{where}: {exc}") from None
+
+
+def _name(hint) -> str:
+    if dataclasses.is_dataclass(hint):
+        return "section (an object)"
+    return getattr(hint, "__name__", None) or str(hint)
 
 
 def merged(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:

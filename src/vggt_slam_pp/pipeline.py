@@ -153,6 +153,9 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     if resume:
         backbone = ResumeBackbone(backbone, out / "predictions")
     store = None
+    if not resume:  # an earlier run's predictions in this folder must never be replayed into this one
+        for old in PredictionStore(out / "predictions").all():
+            old.unlink()
     if (config.save_predictions or resume) and config.backbone.name != "replay":
         store = PredictionStore(out / "predictions", keep_existing=resume)
     first_id = len(prior.submaps) if prior is not None else 0
@@ -311,7 +314,8 @@ class _BackendFeeder:
         self.frontend.release_points(keep_last=1)
         snap = self.worker.latest()
         self._latest = snap or self._latest
-        self.max_lag = max(self.max_lag, self.sent - (snap.last_submap + 1 if snap is not None else 0))
+        done = snap.last_submap + 1 - self.frontend.first_id if snap is not None else 0
+        self.max_lag = max(self.max_lag, self.sent - max(done, 0))
         if time.perf_counter() - self._last_write >= self.write_interval_s:
             self._write_latest()
         if self.sent // self.trace_every > len(self.memory_trace):

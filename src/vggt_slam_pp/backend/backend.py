@@ -20,6 +20,9 @@
 5. layers of submaps that moved by more than ``relocate_min_shift_tiles`` are re-rasterised and
    re-indexed; a :class:`PoseSnapshot` is published.
 
+A recording added to a saved map (:meth:`Backend.seed_map`) is a separate part of the graph until loops
+from several of its submaps agree on where it lies (:meth:`Backend._placement`); docs/backend.md, "Maps".
+
 The same object runs inline (synchronous mode, tests) or inside the worker process
 (:mod:`vggt_slam_pp.backend.worker`).
 """
@@ -168,7 +171,6 @@ class Backend:
         # unplaced (a part of the graph of its own) until a loop links it to a placed one
         self.segment: dict[int, int] = {}  # submap id -> segment id (its first submap)
         self.placed: set[int] = set()
-        self.frozen: set[int] = set()  # localisation only: the prior map's submaps, never moved nor re-indexed
         self.index_new = True  # localisation only: new submaps query the map but do not join its gallery
 
     def seed_map(self, saved, localize_only: bool = False) -> None:
@@ -198,9 +200,8 @@ class Backend:
                 self._layer_pose[sm.id] = sm.T_world_submap.copy()
         for e in saved.edges:
             self.graph.add_edge(e)
-        if localize_only:
-            self.frozen = set(self.graph.poses)
-            self.graph.anchors |= self.frozen
+        if localize_only:  # the map's submaps are held where they are; new ones do not join the gallery
+            self.graph.anchors |= set(self.graph.poses)
             self.index_new = False
         log.info("map seeded: %d submaps, %d edges%s", len(saved.submaps), len(saved.edges),
                  " (localisation only)" if localize_only else "")
@@ -268,7 +269,9 @@ class Backend:
         ``proximity_radius_tiles``; "proximity"): retrieval finds loops the estimate has drifted away
         from, proximity the ones it has not; verification decides for both. With
         ``inject_wrong_candidates`` > 0, that share of queries also gets a random submap from elsewhere
-        ("injected", fault testing)."""
+        ("injected", fault testing). A submap of a recording not yet placed in the map gets its
+        ``unplaced_candidates`` best covisible submaps by votes instead, and no proximity candidates
+        (its position means nothing yet)."""
         count = self.config.candidates_per_query
         if self.segment[sid] in self.placed:
             ranked = [(c.match, c.score) for c in res.candidates]
@@ -283,7 +286,8 @@ class Backend:
             out.append((m, s, s - nxt, "retrieval"))
         if self.config.proximity_candidates and sid in self._centroid and self.segment[sid] in self.placed:
             here = transform_points(self.graph.poses[sid], self._centroid[sid][None])[0]
-            old = [j for j in self._centroid if j < sid - self.stage.config.index.exclude_recent]
+            old = [j for j in self._centroid if j < sid - self.stage.config.index.exclude_recent
+                   and (self.index_new or j in self._layer_pose)]  # localisation only: the map's submaps
             if old:
                 d = np.array([np.linalg.norm(transform_points(self.graph.poses[j], self._centroid[j][None])[0] - here)
                               for j in old])
@@ -401,16 +405,21 @@ class Backend:
         for i in members:
             self.graph.poses[i] = C @ self.graph.poses[i]
             self.odometry_poses[i] = C @ self.odometry_poses[i]
-            self.segment[i] = target
             if i in self._layer_pose:
                 self.stage.relocate(i, transform_points(self.graph.poses[i],
                                                         _subsample(self.store.get(i), self.config.dem_max_points)))
                 self._layer_pose[i] = self.graph.poses[i].copy()
+        self.placed.add(seg)  # segments stay the odometry chains: drift bounds and cycles still follow them
         log.info("submaps %d..%d placed in the map by loop %d->%d", members[0], members[-1], r.query, r.match)
 
     def placed_submaps(self) -> list[int]:
-        """Submaps in a segment placed in the map's frame (all of them for a single recording)."""
-        return sorted(i for i, g in self.segment.items() if g in self.placed)
+        """Submaps in the map's frame: those the pose graph connects to the map's first submap (all of them
+        for a single recording). A recording whose placing loops the final robust solve dropped is not."""
+        if not self.graph.poses:
+            return []
+        root = self.graph.component_roots()
+        first = root[min(self.graph.poses)]
+        return sorted(i for i, r in root.items() if r == first and self.segment.get(i) in self.placed)
 
     def _consistent(self, r: LoopResult) -> list[int]:
         """Indices (in :attr:`loops`) of the verified loops, accepted or pending, that close a consistent

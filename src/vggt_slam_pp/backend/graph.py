@@ -159,13 +159,13 @@ class PoseGraph:
         # made the result worse (see docs/backend.md), so it is off by default.
         stages = ["huber", "cauchy"] if kernel == "cauchy" and self.config.continuation else [kernel]
         free = set(self.poses) if window is None else {i for i in window if i in self.poses}
+        free -= self.anchors
         touching = [e for e in self.edges if e.i in free or e.j in free]
         used: set[int] = set(free)
         for e in touching:
             used.update((e.i, e.j))
-        free -= self.anchors
         fixed = used - free
-        fixed.update(used & (self._gauges() | self.anchors))
+        fixed.update(used & (set(self.component_roots().values()) | self.anchors))
         if not fixed:  # a window disconnected from the anchor: pin its oldest node
             fixed.add(min(used))
         tight = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
@@ -206,8 +206,9 @@ class PoseGraph:
                            "global": window is None}
         return out
 
-    def _gauges(self) -> set[int]:
-        """The first node of each connected part of the graph (odometry and loop edges)."""
+    def component_roots(self) -> dict[int, int]:
+        """Each node's connected part of the graph (odometry and loop edges), named by its first node; the
+        first node of each part is its gauge in a solve."""
         parent = {i: i for i in self.poses}
 
         def root(i: int) -> int:
@@ -220,7 +221,7 @@ class PoseGraph:
             a, b = root(e.i), root(e.j)
             if a != b:
                 parent[max(a, b)] = min(a, b)
-        return {root(i) for i in self.poses}
+        return {i: root(i) for i in self.poses}
 
     def _solve_gnc(self, graph, values, lm_params, is_loop: list[bool]):
         """Graduated non-convexity (GTSAM ``GncLMOptimizer``, truncated least squares) over plain Gaussian

@@ -1,6 +1,7 @@
 """A finished run's folder read back as a map: a versioned manifest, integrity checks, typed records.
 
-Every run with the back-end ends by writing ``map.json`` (last, atomically): the format name and
+Every run with the back-end that finishes (not one that fails, and not a localisation-only run) ends by
+writing ``map.json`` (last, atomically): the format name and
 version, the number of submaps, and the size of every file the map needs (``graph.json``,
 ``config.json`` and ``submaps/NNNNNN.npy``, the points of each submap in its own frame). A folder is a
 map only once that manifest exists, so an interrupted run is not mistaken for one. :func:`load_map`
@@ -84,8 +85,9 @@ def load_map(folder: str | Path) -> SavedMap:
     if manifest.get("version") != MAP_VERSION:
         raise InputError(f"{folder} is a map of format version {manifest.get('version')}; this version of "
                          f"vggt-slam-pp reads version {MAP_VERSION}")
-    files = manifest.get("files", {})
-    n = int(manifest.get("submaps", -1))
+    files, n = manifest.get("files"), manifest.get("submaps")
+    if not isinstance(files, dict) or not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise InputError(f"{folder}/map.json is damaged: it must list its files and a submap count")
     for name in _manifest_files(folder, n):
         path = folder / name
         if name not in files or not path.is_file():

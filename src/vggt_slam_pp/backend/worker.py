@@ -193,6 +193,10 @@ class BackendWorker:
                                  name="vggt-slam-pp-backend", daemon=True)
         _start_without_main(self._proc, config.worker_threads)
         self._backend = None
+        if prior_map is not None:  # the worker rasterises and indexes every submap of the map before it is ready
+            from vggt_slam_pp.backend.mapfile import load_map
+
+            start_timeout_s += 5.0 * len(load_map(prior_map[0]).submaps)
         self._await(lambda kind: kind == "ready", start_timeout_s, "start")
 
     # -- messages ---------------------------------------------------------------------------------

@@ -223,6 +223,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         given_input.update(input=str(args.input.resolve()), gt=str(args.gt.resolve()) if args.gt else None,
                            map=str(args.map.resolve()) if args.map else None)
         config, out = run_config_from_args(args), args.out
+    if given_input.get("map") and Path(given_input["map"]).resolve() == Path(out).resolve():
+        raise InputError(f"--out must not be the map's folder {out}: a map is never modified in place")
     source = _open_input(given_input)
     if not args.resume:
         out.mkdir(parents=True, exist_ok=True)
@@ -467,7 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --map: localise in the map without changing or extending it")
     r.add_argument("--resume", type=Path, metavar="DIR",
                    help="continue the interrupted run in DIR (its input.json and config.json) from its last "
-                        "finished submap; the result equals an uninterrupted run")
+                        "finished submap; with vggt, simulated or replay the result equals an uninterrupted run "
+                        "(colmap estimates its anchor and camera again: docs/frontend.md, Resume)")
     start = r.add_mutually_exclusive_group()
     start.add_argument("--preset", choices=list(PRESETS), help="a named configuration to start from (default "
                        "vggt); flags given with it override it: " + "; ".join(

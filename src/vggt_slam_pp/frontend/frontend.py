@@ -207,7 +207,7 @@ class Frontend:
         if pred.num_points() == 0:
             log.warning("submap %d: no points left after filtering", sid)
         submap = Submap(sid, np.array([f.index for f in frames]), np.array([f.timestamp for f in frames]),
-                        pred, has_overlap=sid > 0, overlap=sum(1 for f in frames if f.index in in_prev))
+                        pred, has_overlap=bool(self.submaps), overlap=sum(1 for f in frames if f.index in in_prev))
         if prev is not None:
             t = time.perf_counter()
             edge = estimate_edge(sid - 1, prev.prediction, sid, pred, self.config.odometry)

@@ -239,6 +239,8 @@ class FrameSubset(FrameSource):
         """Every ``stride``-th frame, at most ``limit`` of them (the source itself when that is all)."""
         if stride < 1:
             raise InputError(f"stride must be >= 1, got {stride}")
+        if limit is not None and limit < 1:
+            raise InputError(f"the number of frames must be >= 1, got {limit}")
         idx = np.arange(0, len(source), stride)[:limit]
         return source if len(idx) == len(source) else cls(source, idx)
 

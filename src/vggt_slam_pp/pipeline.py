@@ -161,8 +161,10 @@ def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: 
     first_id = len(prior.submaps) if prior is not None else 0
     frontend = Frontend(backbone, config.frontend, store=store, first_id=first_id)
     backend_config = _scale_aware(config.backend_config, backbone)
-    worker = BackendWorker(backend_config, out / "submaps", prior_map=(str(prior.folder), localize_only)
-                           if prior is not None else None) if config.backend else None
+    worker = None
+    if config.backend:
+        worker = BackendWorker(backend_config, out / "submaps", start_timeout_s=300.0 + 5.0 * first_id,
+                               prior_map=(str(prior.folder), localize_only) if prior is not None else None)
     feeder = _BackendFeeder(frontend, worker, out)
     n = len(source)
     error: BaseException | None = None

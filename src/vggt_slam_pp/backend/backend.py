@@ -375,10 +375,7 @@ class Backend:
         c = self.config
         P = self.graph.poses
         seg = self.segment[r.query]
-
-        def move(o: LoopResult) -> np.ndarray:  # the loop's correction of the recording, at the current poses
-            return P[o.match] @ o.T_match_query @ sim3_inverse(P[o.query])
-
+        move = self._move
         C = move(r)
         centre = np.mean([P[i][:3, 3] for i, g in self.segment.items() if g == seg], axis=0)
         tol = c.placement_trans_tiles * self.stage.grid.tile_size
@@ -393,14 +390,18 @@ class Backend:
                 queries.add(o.query)
         return agree if len(queries) >= c.placement_votes else []
 
+    def _move(self, r: LoopResult) -> np.ndarray:
+        """The world-frame move of the query's recording that loop ``r`` asks for, at the current poses."""
+        P = self.graph.poses
+        return P[r.match] @ r.T_match_query @ sim3_inverse(P[r.query])
+
     def _place(self, r: LoopResult) -> None:
         """The first loop that links an unplaced recording (the query's segment) to a placed one moves the
         whole recording by that loop's correction, so the pose graph starts from the merged estimate."""
         seg, target = self.segment[r.query], self.segment[r.match]
         if seg in self.placed or target not in self.placed:
             return
-        P = self.graph.poses
-        C = P[r.match] @ r.T_match_query @ sim3_inverse(P[r.query])  # at the current poses, not the verification's
+        C = self._move(r)  # at the current poses, not the verification's
         members = sorted(i for i, g in self.segment.items() if g == seg)
         for i in members:
             self.graph.poses[i] = C @ self.graph.poses[i]

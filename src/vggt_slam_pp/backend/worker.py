@@ -167,6 +167,8 @@ class BackendWorker:
 
     def __init__(self, config: BackendConfig, folder: str | Path, mode: str | None = None,
                  start_timeout_s: float = 300.0, prior_map: tuple[str, bool] | None = None) -> None:
+        """``prior_map``: (a saved map's folder, localisation only); the worker rasterises and indexes every
+        submap of it before it is ready, so give a ``start_timeout_s`` that grows with the map."""
         mode = mode or config.worker
         if mode not in MODES:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
@@ -193,10 +195,6 @@ class BackendWorker:
                                  name="vggt-slam-pp-backend", daemon=True)
         _start_without_main(self._proc, config.worker_threads)
         self._backend = None
-        if prior_map is not None:  # the worker rasterises and indexes every submap of the map before it is ready
-            from vggt_slam_pp.backend.mapfile import load_map
-
-            start_timeout_s += 5.0 * len(load_map(prior_map[0]).submaps)
         self._await(lambda kind: kind == "ready", start_timeout_s, "start")
 
     # -- messages ---------------------------------------------------------------------------------

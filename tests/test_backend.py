@@ -245,12 +245,12 @@ def loop_sequence(tmp_path_factory):
     return folder
 
 
-def _small_config(**backend):
-    from vggt_slam_pp.backend.backend import BackendConfig
+def _small_config(worker: str = "process"):
+    from vggt_slam_pp.backend.worker import WorkerConfig
     from vggt_slam_pp.frontend.frontend import FrontendConfig
     from vggt_slam_pp.pipeline import RunConfig
 
-    return RunConfig(frontend=FrontendConfig(submap_size=3), backend_config=BackendConfig(**backend))
+    return RunConfig(frontend=FrontendConfig(submap_size=3), worker=WorkerConfig(mode=worker))
 
 
 def test_backend_failure_surfaces_and_outputs_remain(loop_sequence, tmp_path, monkeypatch):
@@ -295,10 +295,10 @@ def test_worker_process_matches_inline_and_publishes_snapshots(loop_sequence, tm
 
 def test_worker_error_reraises_in_the_caller(tmp_path, rng):
     from vggt_slam_pp.backend.backend import BackendConfig, SubmapMessage
-    from vggt_slam_pp.backend.worker import BackendWorker
+    from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
     from vggt_slam_pp.frontend.types import OdometryEdge
 
-    worker = BackendWorker(BackendConfig(queue_size=1), tmp_path / "s")
+    worker = BackendWorker(BackendConfig(), tmp_path / "s", WorkerConfig(queue_size=1))
     worker.store.put(0, rng.normal(size=(500, 3)))
     worker.submit(SubmapMessage(0, np.zeros((2, 3)), None))
     worker.store.put(7, rng.normal(size=(500, 3)))
@@ -318,30 +318,31 @@ def test_worker_error_reraises_in_the_caller(tmp_path, rng):
 
 def test_worker_rejects_an_unknown_mode_and_a_bad_duty(tmp_path):
     from vggt_slam_pp.backend.backend import BackendConfig
-    from vggt_slam_pp.backend.worker import BackendWorker
+    from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
 
     with pytest.raises(BackendError, match="unknown back-end mode 'threads'"):
-        BackendWorker(BackendConfig(worker="threads"), tmp_path)
+        BackendWorker(BackendConfig(), tmp_path, WorkerConfig(mode="threads"))
     for duty in (0.0, 1.5):
-        with pytest.raises(BackendError, match="worker_duty must be in"):
-            BackendWorker(BackendConfig(worker_duty=duty), tmp_path)
+        with pytest.raises(BackendError, match="duty must be in"):
+            BackendWorker(BackendConfig(), tmp_path, WorkerConfig(duty=duty))
 
 
 @pytest.mark.timeout(900)
 def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp_path):
     """Fault test: a wrong candidate (the nearest submap beyond the proximity radius, verified like any
     other) for 10 % of the queries, and for 30 % as a stress case, changes the final ATE by < 10 %."""
+    from vggt_slam_pp.backend.backend import FaultConfig
+    from vggt_slam_pp.backend.places import CovisibilityConfig
     from vggt_slam_pp.benchmarks import _synthetic_run_config
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.pipeline import run
-    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig
     from vggt_slam_pp.synthetic import make_scene, write_sequence
 
     write_sequence(make_scene("loop", frames=600, width=224, height=168, seed=0), tmp_path / "seq")
     source = open_source(tmp_path / "seq")
     base = run(source, _synthetic_run_config(0, worker="inline"), tmp_path / "base")
     assert base["loops_accepted"] >= 2 and base["ate_rmse"] < 0.9 * base["ate_rmse_odometry"]
-    # the sequence prior follows the loops the back-end verified (Backend -> CovisibilityStage.confirm)
+    # the sequence prior follows the loops the back-end verified (LoopCloser -> CovisibilityStage.confirm)
     graph = json.loads((tmp_path / "base" / "graph.json").read_text())
     verified: dict[int, set[int]] = {}
     for c in graph["loop_candidates"]:  # verified during the run (pending, or dropped again by the final solve)
@@ -355,7 +356,7 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
             followed += 1
     assert followed >= 1
     for rate in (0.1, 0.3):
-        faulty = run(source, _synthetic_run_config(0, worker="inline", inject_wrong_candidates=rate),
+        faulty = run(source, _synthetic_run_config(0, worker="inline", faults=FaultConfig(wrong_candidates=rate)),
                      tmp_path / f"faulty{rate}")
         graph = json.loads((tmp_path / f"faulty{rate}" / "graph.json").read_text())
         injected = [c for c in graph["loop_candidates"] if c["source"] == "injected"]
@@ -367,9 +368,9 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
 
 def test_backbones_without_metric_scale_get_an_auto_dem_tile(rng):
     from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
     from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone
     from vggt_slam_pp.pipeline import _scale_aware
-    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
     from vggt_slam_pp.retrieval.encoders import make_encoder
 
     class _Unitless(SimulatedBackbone):
@@ -380,10 +381,10 @@ def test_backbones_without_metric_scale_get_an_auto_dem_tile(rng):
     assert auto.covisibility.dem.tile_size == "auto"
     # the grid's tile is then a quarter of the first submap's median camera-to-point distance, whatever the units
     for units in (1.0, 0.05):
-        stage = CovisibilityStage(make_encoder("hog"), auto.covisibility)
+        stage = CovisibilityStage.create(make_encoder("hog"), auto.covisibility)
         ground = np.c_[rng.uniform(-20, 20, (4000, 2)), np.zeros(4000)] * units
         cams = np.array([[0.0, 0.0, 1.6], [2.0, 0.0, 1.6]]) * units
-        stage._ensure_grid(ground, cams, None)
+        stage.gallery.ensure_grid(ground, cams, None)
         from scipy.spatial import cKDTree
 
         expected = 0.25 * np.median(cKDTree(cams).query(ground)[0])
@@ -400,26 +401,28 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     from vggt_slam_pp.backend.registration import LoopResult
 
     backend = Backend(BackendConfig(), SubmapStore(tmp_path / "s"))
-    backend.stage.grid = SimpleNamespace(tile_size=2.0)
+    backend.map.gallery.grid = SimpleNamespace(tile_size=2.0)
     for i in range(14):  # odometry along x, drifting: the estimate is off by C at the revisit
-        backend.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([5.0 * i, 0.0, 0.0])))
+        backend.map.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([5.0 * i, 0.0, 0.0])))
+        backend.map.segment[i] = 0
     C = make_sim3(1.1, so3_exp(np.array([0, 0, 0.15])), np.array([3.0, -2.0, 0.0]))  # the drift to undo
 
     def loop(q, m, Z):
         return LoopResult(q, m, True, "accepted", Z, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
 
-    P = backend.graph.poses
+    closer = backend.closer
+    P = backend.map.graph.poses
     true = [loop(q, m, sim3_inverse(P[m]) @ C @ P[q]) for q, m in ((10, 2), (11, 3), (11, 2))]
     wrong = loop(12, 3, sim3_inverse(P[3]) @ make_sim3(0.9, so3_exp(np.array([0, 0, -0.6])),
                                                         np.array([-9.0, 6.0, 0.0])) @ P[12])
-    backend.loops = [true[0]]
-    assert backend._consistent(true[1]) == [0] and backend._consistent(true[2]) == [0]
-    assert backend._consistent(wrong) == []
-    backend.loops = [wrong]
-    assert backend._consistent(true[1]) == []
+    closer.loops = [true[0]]
+    assert closer.consistent(true[1]) == [0] and closer.consistent(true[2]) == [0]
+    assert closer.consistent(wrong) == []
+    closer.loops = [wrong]
+    assert closer.consistent(true[1]) == []
     far = loop(13, 9, sim3_inverse(P[9]) @ C @ P[13])  # too far from the others to be compared
-    backend.loops = list(true)
-    assert backend._consistent(far) == []
+    closer.loops = list(true)
+    assert closer.consistent(far) == []
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():
@@ -436,3 +439,33 @@ def test_every_part_of_the_pose_graph_has_its_own_gauge():
     g.optimize()
     assert np.allclose(g.poses[1][:3, 3], [1.0, 0, 0]) and np.allclose(g.poses[3][:3, 3], [3.0, 0, 0])
     assert np.allclose(g.poses[2][:3, 3], [2.2, 0, 0], atol=1e-6) and np.allclose(g.poses[4][:3, 3], [4.2, 0, 0])
+
+
+def test_the_map_describes_a_moved_submap_again_only_when_it_moved_enough(tmp_path, rng):
+    """``Map.refresh_layers`` re-rasterises and re-indexes a layer when the graph moved its submap by at
+    least ``relocate_min_shift_tiles`` since the layer was made; a smaller move keeps it."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    store = SubmapStore(tmp_path / "s")
+    gallery = Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0)))
+    m = Map(PoseGraph(GraphConfig()), store, gallery, relocate_min_shift_tiles=0.25)
+    ground = np.c_[rng.uniform(-15, 15, (6000, 2)), rng.uniform(0, 0.05, 6000)]
+    boxes = np.c_[rng.uniform(-3, 3, (3000, 2)), rng.uniform(0, 2.0, 3000)]
+    store.put(0, np.r_[ground, boxes])
+    T = m.add_submap(0, None, store.get(0))
+    gallery.ensure_grid(m.layer_points(0), np.array([[0.0, 0.0, 5.0]]), None)
+    m.index_layer(0, gallery.describe(0, m.layer_points(0)))
+    keys0, _ = gallery.tiles_of(0)
+    before = {0: T.copy()}
+    m.graph.poses[0] = make_sim3(1.0, np.eye(3), np.array([0.2, 0.0, 0.0]))  # 0.1 tile: kept
+    assert m.refresh_layers(before) == 0
+    before = {0: m.graph.poses[0].copy()}
+    m.graph.poses[0] = make_sim3(1.0, np.eye(3), np.array([6.0, 0.0, 0.0]))  # 3 tiles: described again
+    assert m.refresh_layers(before) == 1
+    keys1, _ = gallery.tiles_of(0)
+    assert 2.0 < np.linalg.norm(keys1.mean(0) - keys0.mean(0)) < 4.0  # its tiles moved with it (3 tiles)
+    assert m.refresh_layers({0: m.graph.poses[0].copy()}) == 0  # nothing moved since
+    assert m.placed_submaps() == [0] and m.is_placed(0)

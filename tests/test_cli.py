@@ -236,6 +236,12 @@ def test_presets_and_bad_configuration_files(tmp_path, capsys):
     older = tmp_path / "older.json"
     older.write_text('{"backbone": {"name": "colmap"}}')  # missing keys keep their defaults
     assert RunConfig.load(older).backbone.name == "colmap" and RunConfig.load(older).frontend.submap_size == 32
+    # a config.json of version 0.x: the worker's settings and fault injection were in backend_config
+    older.write_text('{"backend_config": {"worker": "inline", "worker_duty": 0.25, "queue_size": 4, '
+                     '"inject_wrong_candidates": 0.1, "loop_information": "icp", "candidates_per_query": 2}}')
+    old = RunConfig.load(older)
+    assert (old.worker.mode, old.worker.duty, old.worker.queue_size) == ("inline", 0.25, 4)
+    assert old.backend_config.faults.wrong_candidates == 0.1 and old.backend_config.candidates_per_query == 2
     bad.write_text("{not json")
     _one_line_error(*_run(capsys, "run", "--input", tmp_path, "--config", bad, "--out", tmp_path / "x", "-q"),
                     "not JSON")

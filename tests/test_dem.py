@@ -153,22 +153,22 @@ def test_images_and_export(tmp_path, rng):
     assert paths["color"].stat().st_size > 0 and paths["gray"].stat().st_size > 0
 
 
-def test_dem_map_reraster_on_pose_change_and_fused(rng):
-    from vggt_slam_pp.dem.map import DemMap
-    from vggt_slam_pp.geometry import make_sim3
+def test_fused_dem_is_the_top_of_all_layers(rng):
+    from vggt_slam_pp.dem.raster import fuse_layers
+    from vggt_slam_pp.geometry import make_sim3, transform_points
 
-    dm = DemMap(_grid())
+    g = _grid()
     pts = _surface(rng, lambda u, v: 0.5 + 0 * u, 20_000, 3.0)
-    dm.add(0, pts, np.eye(4))
-    dm.add(1, pts, make_sim3(1.0, np.eye(3), [2.0, 0.0, 0.5]))
-    assert not dm.update_pose(0, make_sim3(1.0, np.eye(3), [0.01, 0, 0]))  # < half a pixel: kept
-    assert dm.update_pose(0, make_sim3(1.0, np.eye(3), [0.0, 4.0, 0.0]))  # moved: re-rasterised
-    assert dm.layer(0).origin_px[1] == 40
-    fused, origin = dm.fused()
-    assert origin == (0, 0) and np.nanmax(fused) == pytest.approx(1.0, abs=1e-6)
-    assert np.isnan(fused).any()  # the gap between the two layers
-    with pytest.raises(DemError, match="no DEM layer"):
-        dm.layer(7)
+    a = rasterize(pts, g, 0)
+    b = rasterize(transform_points(make_sim3(1.0, np.eye(3), [2.0, 0.0, 0.5]), pts), g, 1)
+    fused, origin = fuse_layers([(a.origin_px, a.heights), (b.origin_px, b.heights.astype(np.float16))])
+    assert origin == (min(a.origin_px[0], b.origin_px[0]), min(a.origin_px[1], b.origin_px[1]))
+    assert fused.dtype == np.float32 and np.nanmax(fused) == pytest.approx(1.0, abs=1e-3)
+    u = b.origin_px[0] - origin[0]  # where both layers cover the ground, the higher one wins
+    assert np.nanmin(fused[:, u + 2:u + 8]) == pytest.approx(1.0, abs=1e-3)
+    assert np.nanmin(fused) == pytest.approx(0.5, abs=1e-3)
+    with pytest.raises(DemError, match="no DEM layers"):
+        fuse_layers([])
 
 
 def test_fill_holes_fills_sampling_gaps_only():

@@ -42,15 +42,15 @@ class _CrashAfter(Backbone):
         self.live.committed(frame_indices)
 
 
-def _config(**backend) -> RunConfig:
+def _config(worker: str = "process") -> RunConfig:
     import dataclasses
 
-    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.worker import WorkerConfig
 
     base = RunConfig.preset("synthetic")
     return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, noise="realistic", seed=2),
                                frontend=dataclasses.replace(base.frontend, submap_size=4),
-                               backend_config=BackendConfig(**backend))
+                               worker=WorkerConfig(mode=worker))
 
 
 def _same(a, b) -> None:
@@ -163,11 +163,11 @@ def mapped(tmp_path_factory):
 def _synthetic(seed: int) -> RunConfig:
     import dataclasses
 
-    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.worker import WorkerConfig
 
     base = RunConfig.preset("synthetic")
     return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, seed=seed),
-                               backend_config=BackendConfig(worker="inline"))
+                               worker=WorkerConfig(mode="inline"))
 
 
 def test_a_second_recording_is_placed_in_the_map_and_extends_it(mapped, tmp_path):
@@ -204,6 +204,7 @@ def test_localize_only_keeps_the_map_fixed_and_refuses_to_write_into_it(mapped, 
     for a, b in zip(nodes[: first["submaps"]], saved, strict=True):
         assert np.allclose(a["T_world_submap"], b["T_world_submap"], atol=1e-9)
     with pytest.raises(InputError, match="never modified in place"):
-        run(second, _synthetic(1), root / "map", prior_map=root / "map")
+        run(second, _synthetic(1), root / "map", prior_map=root / "map", input_record={"input": "new"})
+    assert not (root / "map" / "input.json").exists()  # refused before anything is written
     with pytest.raises(InputError, match="not a map"):
         run(second, _synthetic(1), tmp_path / "x", prior_map=tmp_path / "loc")

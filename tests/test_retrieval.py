@@ -304,12 +304,12 @@ def _region(rng, x0: float, n_boxes: int = 6) -> np.ndarray:
 
 
 def test_sequence_prior_adds_the_previous_match_and_its_neighbours(rng):
-    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
 
     regions = [_region(rng, 16.0 * k) for k in range(8)]
     cams = lambda p: p.mean(0, keepdims=True) + [0.0, 0.0, 5.0]  # noqa: E731
     cfg = lambda n: CovisibilityConfig(index=IndexConfig(top_k=2), sequence_neighbours=n)  # noqa: E731
-    stages = {n: CovisibilityStage(HogEncoder(), cfg(n)) for n in (1, -1)}  # 2 voted edges at most
+    stages = {n: CovisibilityStage.create(HogEncoder(), cfg(n)) for n in (1, -1)}  # 2 voted edges at most
     for stage in stages.values():
         for k, pts in enumerate(regions[:7]):
             stage.process(k, pts, cams(pts))

@@ -163,13 +163,13 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
     2 m tiles two submaps' noise-free footprints (ground-truth poses) have in common, relative to the
     smaller one, >= ``overlap_threshold``. A revisit query is a submap with a true overlap outside the
     excluded recent neighbours. ``covisibility_recall_votes``: the same with the HNSW-voted edges only
-    (without the sequence prior's edges; see :mod:`vggt_slam_pp.retrieval.covisibility`).
+    (without the sequence prior's edges; see :mod:`vggt_slam_pp.backend.places`).
     """
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
     from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
     from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
     from vggt_slam_pp.frontend.keyframes import KeyframeConfig
     from vggt_slam_pp.geometry.lie import sim3_inverse, transform_points
-    from vggt_slam_pp.retrieval.covisibility import CovisibilityConfig, CovisibilityStage
     from vggt_slam_pp.retrieval.encoders import HogEncoder
 
     results = {}
@@ -185,7 +185,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
         for i in range(len(source)):
             fe.process(source[i])
         res = fe.finish()
-        stage = CovisibilityStage(HogEncoder(), CovisibilityConfig())
+        stage = CovisibilityStage.create(HogEncoder(), CovisibilityConfig())
         outputs = []
         for sm, T_ws in zip(res.submaps, res.T_world_submap, strict=True):
             pred = sm.prediction
@@ -223,15 +223,18 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
             "targets": {"covisibility_recall": 0.9, "vpr_top1_precision": 0.8}}
 
 
-def _synthetic_run_config(seed: int, backend: bool = True, noise: str = "default", **backend_fields):
+def _synthetic_run_config(seed: int, backend: bool = True, noise: str = "default", worker: str = "process",
+                          **backend_fields):
     import dataclasses
 
     from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.worker import WorkerConfig
     from vggt_slam_pp.pipeline import RunConfig
 
     base = RunConfig.preset("synthetic")
     return dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, seed=seed, noise=noise),
-                               save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields))
+                               save_predictions=False, backend=backend, backend_config=BackendConfig(**backend_fields),
+                               worker=WorkerConfig(mode=worker))
 
 
 def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(), frames: int = 600,

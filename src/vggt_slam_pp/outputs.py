@@ -1,4 +1,16 @@
-"""The outputs of a run with the back-end (SPEC 4), all written atomically into the run folder.
+"""Everything a run writes (SPEC 4), atomically, into its folder; the only module that serialises results.
+
+:func:`prepare_run_folder` (before the run): ``config.json``, ``input.json``, old predictions cleared.
+:func:`write_run_outputs` (after it, also after an error or Ctrl-C, from the submaps finished so far):
+
+* ``keyframes_odometry.txt`` / ``.kitti``, ``frames_odometry.txt`` / ``.kitti``: the odometry trajectory
+  (TUM with timestamps, 12-column KITTI; every input frame, non-keyframes interpolated in time);
+* ``frames.csv``: ``index,timestamp,keyframe,interpolated,disparity_px,tracked,reason`` per frame;
+* ``report.json``: counts, per-stage timings, throughput, peak memory, odometry edges and, with ground
+  truth, ``ate_rmse_odometry`` (Sim(3)-aligned, keyframes);
+* ``map.json`` last, when the run finished with the back-end (:mod:`vggt_slam_pp.backend.mapfile`).
+
+With the back-end (:func:`write_backend_outputs`):
 
 * ``keyframes.txt`` / ``.kitti``, ``frames.txt`` / ``.kitti``: the corrected trajectory (the odometry-only
   files are written by the pipeline beside them);
@@ -9,7 +21,7 @@
 * ``dem/``: the fused DEM (colour and grayscale PNG, ``.npz`` with heights, mpp, plane, origin);
 * ``trajectory.png``: odometry, corrected and (when known) ground truth, seen from above.
 
-Returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected`` (of which
+:func:`write_backend_outputs` returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected`` (of which
 ``loops_pending`` and ``loops_dropped_by_graph``),
 ``backend_s_per_submap``, ``backend_timings``.
 """
@@ -19,21 +31,162 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from vggt_slam_pp import __version__
 from vggt_slam_pp.backend.backend import BackendResult
+from vggt_slam_pp.backend.mapfile import write_manifest
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import DemGrid, GroundPlane, export_dem, rasterize
 from vggt_slam_pp.dem.images import height_ramp
-from vggt_slam_pp.dem.map import fuse_layers
+from vggt_slam_pp.dem.raster import fuse_layers
 from vggt_slam_pp.errors import EvaluationError, VggtSlamError
 from vggt_slam_pp.frontend.frontend import FrontendResult
 from vggt_slam_pp.geometry.lie import sim3_inverse, transform_points
 from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
+from vggt_slam_pp.resources import peak_rss_mb
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunStats:
+    """How a run went, besides its results (the report's timings and resources)."""
+
+    seconds_total: float
+    read_s: float  # reading input frames
+    error: BaseException | None  # what stopped the run (an error or KeyboardInterrupt); None: it finished
+    backbone: dict  # the backbone's own description (Backbone.describe)
+    frontend_s: float | None  # wall time of the frame loop; None when it did not finish
+    backend_submit_s: float  # the front-end's time handing submaps over (a full inbox included)
+    backend_finish_wait_s: float  # waiting for the back-end's last submaps and final solve
+    backend_mode: str | None = None  # "process" or "inline"; None without the back-end
+    backend_queue_wait_s: float = 0.0
+    frontend_memory_trace: list = field(default_factory=list)  # (submaps sent, RSS MiB)
+    backend_max_lag_submaps: int = 0
+
+
+def prepare_run_folder(out: Path, config, input_record: dict | None, keep_predictions: bool) -> None:
+    """Before a run: the folder exists, is no longer a map (``map.json`` comes back when the run finishes),
+    holds the run's ``config.json`` (and ``input.json``); an earlier run's predictions are removed unless
+    they are resumed (they must never be replayed into another run)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "map.json").unlink(missing_ok=True)
+    atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
+    if input_record is not None:
+        atomic_write_text(out / "input.json", json.dumps(input_record, indent=2))
+    if not keep_predictions:
+        for old in (out / "predictions").glob("submap_*.safetensors"):
+            old.unlink()
+
+
+def write_run_outputs(out: Path, source, config, result: FrontendResult | None, backend: BackendResult | None,
+                      stats: RunStats, prior=None, write_map: bool = True) -> dict:
+    """Write a run's trajectories, back-end outputs, ``report.json`` and (finished, ``write_map``) its
+    ``map.json``; returns the report. ``prior``: the saved map the recording was added to."""
+    report = _report(source, config, result, stats)
+    report.update(stats.backbone)
+    report["timings"] = {**report.get("timings", {}), "backend_submit_s": stats.backend_submit_s,
+                         "backend_finish_wait_s": stats.backend_finish_wait_s}
+    if result is not None:
+        _write_odometry(out, result)
+    if result is not None and backend is not None:
+        report.update(write_backend_outputs(out, source, result, backend, SubmapStore(out / "submaps", 0),
+                                            prior=prior))
+        if prior is not None:
+            placed = set(backend.placed)
+            report["map_submaps"] = len(prior.submaps)
+            report["placed_submaps"] = sum(sm.id in placed for sm in result.submaps)
+            report["placed_fraction"] = report["placed_submaps"] / max(len(result.submaps), 1)
+        if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
+            report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
+    if stats.backend_mode is not None:
+        report["backend_mode"] = stats.backend_mode
+        report["backend_queue_wait_s"] = stats.backend_queue_wait_s
+        report["memory_trace"] = {"frontend": stats.frontend_memory_trace,
+                                  "backend": backend.memory_trace if backend is not None else []}
+        report["backend_max_lag_submaps"] = stats.backend_max_lag_submaps
+    # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
+    # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
+    report["frontend_fps"] = len(result.decisions) / max(stats.frontend_s, 1e-9) \
+        if result and stats.frontend_s else None
+    backend_peak = backend.peak_rss_mb if backend is not None and stats.backend_mode == "process" else 0.0
+    report["peak_rss_mb"] = peak_rss_mb() + backend_peak
+    report["peak_rss_mb_backend"] = backend_peak
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
+    if stats.error is None and backend is not None and write_map:
+        first = len(prior.submaps) if prior is not None else 0
+        write_manifest(out, first + len(result.submaps))  # last: the folder is now a complete map
+    return report
+
+
+def _write_trajectory(out: Path, stem: str, trajectory: Trajectory) -> None:
+    """``stem.txt`` (TUM) and ``stem.kitti``."""
+    write_tum(out / f"{stem}.txt", trajectory)
+    write_kitti(out / f"{stem}.kitti", trajectory)
+
+
+def _write_odometry(out: Path, result: FrontendResult) -> None:
+    _write_trajectory(out, "keyframes_odometry", result.keyframe_trajectory())
+    allf = result.all_frame_trajectory()
+    _write_trajectory(out, "frames_odometry", allf)
+    lines = ["index,timestamp,keyframe,interpolated,disparity_px,tracked,reason"]
+    for (idx, ts, d), interp in zip(result.decisions, allf.interpolated, strict=True):
+        lines.append(f"{idx},{ts:.9f},{int(d.is_keyframe)},{int(interp)},{d.disparity:.3f},{d.tracked},{d.reason}")
+    atomic_write_text(out / "frames.csv", "\n".join(lines) + "\n")
+
+
+def _ate(gt: Trajectory, est: Trajectory) -> dict:
+    from vggt_slam_pp.eval import compute_ate
+
+    try:
+        ate = compute_ate(gt, est, "sim3")
+    except (EvaluationError, VggtSlamError) as exc:
+        log.warning("ATE not computed: %s", exc)
+        return {}
+    return {"rmse": ate.rmse, "n": ate.n_matched, "scale": ate.scale}
+
+
+def _report(source, config, result: FrontendResult | None, stats: RunStats) -> dict:
+    error = stats.error
+    report: dict = {"version": __version__, "backbone": config.backbone.name, "calibrated": config.calibrated,
+                    "frames": len(source), "seconds_total": stats.seconds_total, "peak_memory_mb": peak_rss_mb(),
+                    "error": (str(error) or type(error).__name__) if error else None}
+    if result is None:
+        return report
+    kf = result.keyframe_trajectory()
+    total = stats.seconds_total
+    report.update({
+        "frames_processed": len(result.decisions), "keyframes": len(kf), "submaps": len(result.submaps),
+        "fps": len(result.decisions) / total if total > 0 else None,
+        "timings": {"read_s": stats.read_s, **result.timings},
+        "path_length_odometry": kf.path_length(),
+        "edges": [{"prev": e.prev, "curr": e.curr, "method": e.method, "residual": e.residual,
+                   "inlier_ratio": e.inlier_ratio, "correspondences": e.num_correspondences,
+                   "shared_frames": e.shared_frames, "degraded": e.degraded, "cause": e.cause}
+                  for e in result.edges],
+        "degraded_edges": sum(e.degraded for e in result.edges),
+        "recovered_edges": sum(bool(e.cause) and not e.degraded for e in result.edges),
+        "registered_frames": int(sum(sm.prediction.valid[sm.overlap:].sum() for sm in result.submaps)),
+        "invalid_frames": [int(i) for sm in result.submaps for i, v in
+                           zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
+        "points_per_submap": [sm.prediction.info.get("points_after_filter", sm.prediction.num_points())
+                              for sm in result.submaps],
+    })
+    gt_pair = source.frame_ground_truth()
+    if gt_pair is not None:
+        ate = _ate(gt_pair[1], kf)
+        if ate:
+            report["ate_rmse_odometry"] = ate["rmse"]
+            report["ate_odometry"] = ate
+            report["gt_path_length"] = gt_pair[1].path_length()
+        ate_all = _ate(gt_pair[1], result.all_frame_trajectory())
+        if ate_all:
+            report["ate_rmse_odometry_all_frames"] = ate_all["rmse"]
+    return report
 
 
 def write_backend_outputs(out: Path, source, result: FrontendResult, backend: BackendResult, store: SubmapStore,
@@ -43,19 +196,17 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
     out = Path(out)
     corrected = dataclasses.replace(result, T_world_submap=[backend.poses[sm.id] for sm in result.submaps])
     kf, kf_odo = corrected.keyframe_trajectory(), result.keyframe_trajectory()
-    write_tum(out / "keyframes.txt", kf)
-    write_kitti(out / "keyframes.kitti", kf)
+    _write_trajectory(out, "keyframes", kf)
     allf = corrected.all_frame_trajectory()
-    write_tum(out / "frames.txt", allf)
-    write_kitti(out / "frames.kitti", allf)
+    _write_trajectory(out, "frames", allf)
     _write_graph(out / "graph.json", result, backend, prior)
-    accepted = [c for c in backend.loops if c["accepted"]]
+    accepted = [r for r in backend.loops if r.accepted]
     fields: dict = {
         "loops_accepted": len(accepted), "loops_rejected": len(backend.loops) - len(accepted),
         # of the rejected: verified geometrically but left without a cycle-consistent partner, or switched
         # off by the final robust solve (docs/backend.md, "loop acceptance")
-        "loops_pending": sum(c["reason"].startswith("verified, but") for c in backend.loops),
-        "loops_dropped_by_graph": sum(c["reason"].startswith("rejected by the pose graph") for c in backend.loops),
+        "loops_pending": sum(r.reason.startswith("verified, but") for r in backend.loops),
+        "loops_dropped_by_graph": sum(r.reason.startswith("rejected by the pose graph") for r in backend.loops),
         "backend_s_per_submap": float(np.mean(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_s_per_submap_max": float(np.max(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_timings": backend.timings,
@@ -89,17 +240,30 @@ def write_keyframes_snapshot(out: Path, submaps: list, poses) -> None:
     write_tum(Path(out) / "keyframes.txt", partial.keyframe_trajectory())
 
 
+def _edge_dict(e, weight: float | None) -> dict:
+    d = {"from": e.i, "to": e.j, "kind": e.kind, "T": e.T_ij.tolist(), "sigmas": e.sigmas.tolist(), **e.info}
+    if e.information is not None:
+        d["information"] = e.information.tolist()
+    if weight is not None:
+        d["robust_weight"] = weight
+    return d
+
+
 def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, prior=None) -> None:
     known = [(sm.id, sm.frames, sm.camera_centers) for sm in prior.submaps] if prior is not None else []
     known += [(sm.id, sm.frame_indices, [sim3_inverse(T)[:3, 3] for T in sm.prediction.T_cam_submap])
               for sm in result.submaps]
+    placed = set(backend.placed)
     nodes = [{"id": i, "frames": [int(f) for f in frames], "T_world_submap": backend.poses[i].tolist(),
               "T_world_submap_odometry": backend.odometry_poses[i].tolist(),
               "camera_centers": [np.asarray(c, float).tolist() for c in centres],
-              "placed": i in backend.placed} for i, frames, centres in known]
-    graph = {"nodes": nodes, "edges": backend.edges, "covisibility": backend.covisibility,
-             "loop_candidates": backend.loops,
-             "rejected": [c for c in backend.loops if not c["accepted"]],
+              "placed": i in placed} for i, frames, centres in known]
+    weights = iter(backend.loop_weights)
+    loops = [r.to_dict() for r in backend.loops]
+    graph = {"nodes": nodes,
+             "edges": [_edge_dict(e, next(weights) if e.kind == "loop" else None) for e in backend.edges],
+             "covisibility": [dataclasses.asdict(c) for c in backend.covisibility],
+             "loop_candidates": loops, "rejected": [c for c in loops if not c["accepted"]],
              "plane": backend.plane, "tile_size": backend.tile_size, "mpp": backend.mpp}
     atomic_write_text(path, json.dumps(graph, indent=1, default=json_default))
 

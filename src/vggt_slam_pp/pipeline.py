@@ -1,17 +1,9 @@
-"""The facade: run the system on a frame source and write its outputs.
+"""Running the system: :class:`SlamSystem` (front-end, back-end worker, the hand-over between them) and
+:func:`run`, which drives it over a frame source and writes the outputs (:mod:`vggt_slam_pp.outputs`:
+trajectories, ``report.json``, ``graph.json``, ``map.ply``, ``dem/``, ``map.json``) into a folder.
 
-``run(source, config, out_dir)`` runs the front-end and (unless ``backend=False``) the back-end, and
-writes, atomically, into ``out_dir``:
-
-* ``keyframes_odometry.txt`` / ``.kitti``: keyframe poses (TUM with timestamps, 12-column KITTI);
-* ``frames_odometry.txt`` / ``.kitti``: every input frame, non-keyframes interpolated in time;
-* ``frames.csv``: ``index,timestamp,keyframe,interpolated,disparity_px,tracked,reason`` per frame;
-* ``config.json``: the resolved configuration; ``report.json``: counts, per-stage timings, throughput,
-  peak memory, odometry edges and, with ground truth, ``ate_rmse_odometry`` (Sim(3)-aligned, keyframes);
-* ``predictions/``: every submap's raw prediction (safetensors), replayable with ``--backbone replay``;
-* with the back-end (:mod:`vggt_slam_pp.outputs`): ``keyframes.txt``/``.kitti`` and ``frames.txt``/``.kitti``
-  (corrected), ``graph.json``, ``map.ply``, ``dem/``, ``trajectory.png`` and the loop figures in the report;
-  ``submaps/`` holds each submap's points (the back-end's on-disk store).
+``predictions/`` holds every submap's raw prediction (safetensors), replayable with ``--backbone
+replay`` and read back by ``--resume``; ``submaps/`` each submap's points (the back-end's on-disk store).
 
 The back-end runs in its own process (:class:`~vggt_slam_pp.backend.worker.BackendWorker`; ``inline``
 mode for tests); ``keyframes.txt`` follows its newest pose snapshot during the run. If the run fails
@@ -33,24 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
-from vggt_slam_pp import __version__
 from vggt_slam_pp.backend.backend import BackendConfig, BackendResult, SubmapMessage
-from vggt_slam_pp.backend.mapfile import write_manifest
-from vggt_slam_pp.backend.store import SubmapStore
-from vggt_slam_pp.backend.worker import BackendWorker
+from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
 from vggt_slam_pp.configs import PRESETS, from_dict, merged
 from vggt_slam_pp.dem.raster import DemConfig
-from vggt_slam_pp.errors import EvaluationError, FrontendError, InputError, VggtSlamError
+from vggt_slam_pp.errors import FrontendError, InputError, VggtSlamError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
-from vggt_slam_pp.frontend.odometry import chain
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
-from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitti, write_tum
-from vggt_slam_pp.outputs import json_default, write_backend_outputs, write_keyframes_snapshot
+from vggt_slam_pp.outputs import RunStats, prepare_run_folder, write_keyframes_snapshot, write_run_outputs
 from vggt_slam_pp.plugins import BACKBONES
 from vggt_slam_pp.plugins import load as load_plugin
-from vggt_slam_pp.resources import peak_rss_mb, reset_peak_rss, rss_mb
+from vggt_slam_pp.resources import reset_peak_rss, rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +63,7 @@ class RunConfig:
     save_predictions: bool = True
     backend: bool = True  # loop closure; False = odometry only
     backend_config: BackendConfig = field(default_factory=BackendConfig)
+    worker: WorkerConfig = field(default_factory=WorkerConfig)  # how the back-end runs beside the front-end
     blas_threads: int = 1  # numpy / scipy BLAS threads in the front-end's process (0: the library's default).
     # The front-end's matrices are small: a second OpenBLAS thread spin-waits more than it computes (2 cores:
     # 88 -> 107 fps on the block loop with 1) and takes the core the back-end worker would use
@@ -83,7 +71,7 @@ class RunConfig:
     @classmethod
     def from_dict(cls, data: dict) -> RunConfig:
         """The configuration a run wrote to ``config.json`` (missing keys keep their defaults)."""
-        return from_dict(cls, data)
+        return from_dict(cls, _upgrade(data))
 
     @classmethod
     def load(cls, path: str | Path) -> RunConfig:
@@ -95,7 +83,7 @@ class RunConfig:
             raise InputError(f"cannot read the configuration {path}: {exc.strerror or exc}") from None
         except json.JSONDecodeError as exc:
             raise InputError(f"{path} is not JSON: {exc}") from None
-        return from_dict(cls, data, where=str(path))
+        return from_dict(cls, _upgrade(data), where=str(path))
 
     @classmethod
     def preset(cls, name: str) -> RunConfig:
@@ -105,6 +93,27 @@ class RunConfig:
         return from_dict(cls, merged(dataclasses.asdict(cls()), PRESETS[name][1]), where=f"preset {name}")
 
 
+# config.json keys of version 0.x runs that moved: BackendConfig's process control went to WorkerConfig
+_MOVED_TO_WORKER = {"worker": "mode", "queue_size": "queue_size", "worker_threads": "threads",
+                    "worker_priority": "priority", "worker_duty": "duty"}
+
+
+def _upgrade(data):
+    """A ``config.json`` written by an earlier version, in today's form: moved keys follow (the worker's
+    settings, fault injection), the removed ``loop_information`` (always "icp" now) is dropped."""
+    if not isinstance(data, dict) or not isinstance(data.get("backend_config"), dict):
+        return data
+    b, data = dict(data["backend_config"]), dict(data)
+    moved = {new: b.pop(old) for old, new in _MOVED_TO_WORKER.items() if old in b}
+    if moved:
+        data["worker"] = {**moved, **data.get("worker", {})}
+    if "inject_wrong_candidates" in b:
+        b["faults"] = {"wrong_candidates": b.pop("inject_wrong_candidates")}
+    b.pop("loop_information", None)
+    data["backend_config"] = b
+    return data
+
+
 def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
     """Instantiate the configured backbone for ``source`` (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
     return load_plugin(BACKBONES, config.backbone.name, "backbone", FrontendError)(config, source)
@@ -112,7 +121,7 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
 
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
         progress: Callable[[int, int], None] | None = None, resume: bool = False,
-        prior_map: str | Path | None = None, localize_only: bool = False) -> dict:
+        prior_map: str | Path | None = None, localize_only: bool = False, input_record: dict | None = None) -> dict:
     """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary.
 
     ``resume``: ``out_dir`` holds an interrupted run of the same input and configuration; the backbone
@@ -125,120 +134,137 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     and registration, come out in the map's frame once a loop places them, and the extended map is
     written to ``out_dir`` (never into the map's folder). ``localize_only``: the map is held fixed and
     not extended; ``out_dir`` then holds the recording's trajectory in the map's frame, not a map
-    (docs/backend.md, "Maps")."""
+    (docs/backend.md, "Maps").
+
+    ``input_record``: how the input was given (the CLI's flags), written to ``input.json`` for ``--resume``.
+    """
     from threadpoolctl import threadpool_limits
 
     if config.blas_threads < 0:
         raise InputError(f"blas_threads must be >= 0 (0: the library default), got {config.blas_threads}")
     limit = threadpool_limits(config.blas_threads, user_api="blas") if config.blas_threads else nullcontext()
     with limit:
-        return _run(source, config, out_dir, backbone, progress, resume, prior_map, localize_only)
+        return _run(source, config, Path(out_dir), backbone, progress, resume, prior_map, localize_only, input_record)
 
 
-def _run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None,
-         progress: Callable[[int, int], None] | None, resume: bool = False, prior_map: str | Path | None = None,
-         localize_only: bool = False) -> dict:
-    from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ResumeBackbone
+def _run(source: FrameSource, config: RunConfig, out: Path, backbone: Backbone | None,
+         progress: Callable[[int, int], None] | None, resume: bool, prior_map: str | Path | None,
+         localize_only: bool, input_record: dict | None) -> dict:
+    from vggt_slam_pp.frontend.backbones.replay import PredictionStore
 
-    out = Path(out_dir)
     prior = _open_prior_map(prior_map, out, config) if prior_map is not None else None
     if resume and not PredictionStore(out / "predictions").all():
         raise InputError(f"nothing to resume in {out}: no saved predictions (predictions/submap_*.safetensors)")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "map.json").unlink(missing_ok=True)  # the folder is a map again only when this run finishes
+    prepare_run_folder(out, config, input_record, keep_predictions=resume)
     reset_peak_rss()  # peak_rss_mb: this run's, not whatever the calling process did before
-    atomic_write_text(out / "config.json", json.dumps(dataclasses.asdict(config), indent=2, default=str))
     t0 = time.perf_counter()
     backbone = backbone or make_backbone(config, source)
-    if resume:
-        backbone = ResumeBackbone(backbone, out / "predictions")
-    store = None
-    if not resume:  # an earlier run's predictions in this folder must never be replayed into this one
-        for old in PredictionStore(out / "predictions").all():
-            old.unlink()
-    if (config.save_predictions or resume) and config.backbone.name != "replay":
-        store = PredictionStore(out / "predictions", keep_existing=resume)
-    first_id = len(prior.submaps) if prior is not None else 0
-    frontend = Frontend(backbone, config.frontend, store=store, first_id=first_id)
-    backend_config = _scale_aware(config.backend_config, backbone)
-    worker = None
-    if config.backend:
-        worker = BackendWorker(backend_config, out / "submaps", start_timeout_s=300.0 + 5.0 * first_id,
-                               prior_map=(str(prior.folder), localize_only) if prior is not None else None)
-    feeder = _BackendFeeder(frontend, worker, out)
+    system = SlamSystem(config, out, backbone, resume=resume, prior=prior, localize_only=localize_only)
     n = len(source)
     error: BaseException | None = None
     t_read = 0.0
-    backend_result: BackendResult | None = None
-    t_loop = time.perf_counter()
-    frontend_s = None
-    t_finish = 0.0
     try:
         for i in range(n):
             t = time.perf_counter()
             frame = source[i]
-            if config.calibrated and frame.intrinsics is not None and frame.intrinsics.dist is not None \
-                    and backbone.name != "colmap":
-                frame = _undistorted(frame)
             t_read += time.perf_counter() - t
-            if frontend.process(frame) is not None:
-                feeder.feed()
+            system.process(frame)
             if progress:
                 progress(i + 1, n)
-        result = frontend.finish()
-        feeder.feed()
-        frontend_s = time.perf_counter() - t_loop
-        if worker is not None:
-            t = time.perf_counter()
-            backend_result = worker.finish()
-            t_finish = time.perf_counter() - t
+        result = system.finish()
     except (VggtSlamError, KeyboardInterrupt) as exc:
         error = exc
+        result = system.partial_result()
         log.error("run %s: %s; writing the outputs of %d finished submaps",
                   "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed", exc or "interrupted",
-                  len(frontend.submaps))
-        result = FrontendResult(frontend.submaps, frontend.edges, chain(frontend.edges), frontend.decisions,
-                                dict(frontend.timings)) if frontend.submaps else None
-        feeder.flush()
-        if worker is not None:
-            worker.close()
+                  len(result.frontend.submaps) if result.frontend is not None else 0)
     finally:
-        backbone.close()
-    total = time.perf_counter() - t0
-    report = _report(source, config, result, total, t_read, error)
-    report.update(backbone.describe())
-    report["timings"] = {**report.get("timings", {}), "backend_submit_s": feeder.seconds,
-                         "backend_finish_wait_s": t_finish}
-    if result is not None:
-        _write_trajectories(out, result)
-    if result is not None and backend_result is not None:
-        report.update(write_backend_outputs(out, source, result, backend_result, SubmapStore(out / "submaps", 0),
-                                            prior=prior))
-        if prior is not None:
-            placed = set(backend_result.placed)
-            report["map_submaps"] = first_id
-            report["placed_submaps"] = sum(sm.id in placed for sm in result.submaps)
-            report["placed_fraction"] = report["placed_submaps"] / max(len(result.submaps), 1)
-        if "ate_rmse" in report and "ate_rmse_odometry" in report and report["ate_rmse_odometry"] > 0:
-            report["ate_reduction"] = 1.0 - report["ate_rmse"] / report["ate_rmse_odometry"]
-    if worker is not None:
-        report["backend_mode"] = worker.mode
-        report["backend_queue_wait_s"] = worker.wait_s
-        report["memory_trace"] = {"frontend": feeder.memory_trace,
-                                  "backend": backend_result.memory_trace if backend_result is not None else []}
-        report["backend_max_lag_submaps"] = feeder.max_lag
-    # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
-    # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
-    report["frontend_fps"] = len(result.decisions) / max(frontend_s, 1e-9) if result and frontend_s else None
-    backend_peak = backend_result.peak_rss_mb if backend_result is not None and worker.mode == "process" else 0.0
-    report["peak_rss_mb"] = peak_rss_mb() + backend_peak
-    report["peak_rss_mb_backend"] = backend_peak
-    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
+        system.backbone.close()
+    stats = system.stats(time.perf_counter() - t0, t_read, error)
+    report = write_run_outputs(out, source, config, result.frontend, result.backend, stats, prior=prior,
+                               write_map=not localize_only)
     if error is not None:
         raise error
-    if backend_result is not None and not localize_only:
-        write_manifest(out, first_id + len(result.submaps))  # last: the folder is now a complete map
     return report
+
+
+@dataclass
+class SlamResult:
+    """What a run produced: the front-end's submaps and odometry, and (with the back-end) its result."""
+
+    frontend: FrontendResult | None  # None when no submap was finished
+    backend: BackendResult | None
+
+
+class SlamSystem:
+    """The running system for one output folder: front-end, back-end worker and the hand-over between them.
+
+    ::
+
+        system = SlamSystem(config, out, backbone)
+        for frame in frames:
+            system.process(frame)
+        result = system.finish()  # or, after an error or Ctrl-C: system.partial_result()
+
+    ``resume``: backbone calls finished by an interrupted run in ``out`` are read back from its
+    ``predictions/``; ``prior``: a :class:`~vggt_slam_pp.backend.mapfile.SavedMap` the recording is added
+    to (its points already linked into ``out/submaps``); ``localize_only``: that map is held fixed.
+    """
+
+    def __init__(self, config: RunConfig, out: Path, backbone: Backbone, resume: bool = False, prior=None,
+                 localize_only: bool = False) -> None:
+        from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ResumeBackbone
+
+        self.config, self.out = config, Path(out)
+        self.backbone = ResumeBackbone(backbone, self.out / "predictions") if resume else backbone
+        store = None
+        if (config.save_predictions or resume) and config.backbone.name != "replay":
+            store = PredictionStore(self.out / "predictions", keep_existing=resume)
+        first_id = len(prior.submaps) if prior is not None else 0
+        self.frontend = Frontend(self.backbone, config.frontend, store=store, first_id=first_id)
+        self.worker: BackendWorker | None = None
+        if config.backend:
+            self.worker = BackendWorker(_scale_aware(config.backend_config, backbone), self.out / "submaps",
+                                        config.worker, start_timeout_s=300.0 + 5.0 * first_id,
+                                        prior_map=(str(prior.folder), localize_only) if prior is not None else None)
+        self.feeder = _BackendFeeder(self.frontend, self.worker, self.out)
+        self._undistort = config.calibrated and self.backbone.name != "colmap"  # colmap models distortion itself
+        self.frontend_s: float | None = None  # wall time of the frame loop (set by finish)
+        self.finish_wait_s = 0.0  # time finish() waited for the back-end's last submaps and global solve
+        self._t_start = time.perf_counter()
+
+    def process(self, frame) -> None:
+        """One input frame; a finished submap goes to the back-end at once."""
+        if self._undistort and frame.intrinsics is not None and frame.intrinsics.dist is not None:
+            frame = _undistorted(frame)
+        if self.frontend.process(frame) is not None:
+            self.feeder.feed()
+
+    def finish(self) -> SlamResult:
+        """The last submap, then the back-end's final global optimisation."""
+        result = self.frontend.finish()
+        self.feeder.feed()
+        self.frontend_s = time.perf_counter() - self._t_start
+        backend_result = None
+        if self.worker is not None:
+            t = time.perf_counter()
+            backend_result = self.worker.finish()
+            self.finish_wait_s = time.perf_counter() - t
+        return SlamResult(result, backend_result)
+
+    def partial_result(self) -> SlamResult:
+        """After an error or an interruption: the submaps finished so far, ``keyframes.txt`` at the newest
+        pose snapshot, and the back-end stopped."""
+        self.feeder.flush()
+        if self.worker is not None:
+            self.worker.close()
+        return SlamResult(self.frontend.partial_result(), None)
+
+    def stats(self, seconds_total: float, read_s: float, error: BaseException | None) -> RunStats:
+        """How the run went, for its report."""
+        w, f = self.worker, self.feeder
+        return RunStats(seconds_total, read_s, error, self.backbone.describe(), self.frontend_s, f.seconds,
+                        self.finish_wait_s, w.mode if w else None, w.wait_s if w else 0.0, f.memory_trace, f.max_lag)
 
 
 def _open_prior_map(folder: str | Path, out: Path, config: RunConfig):
@@ -347,67 +373,3 @@ def _undistorted(frame):
     image = cam.undistort_image(frame.image)
     return dataclasses.replace(frame, image=image, intrinsics=cam.without_distortion(),
                                depth=None if frame.depth is None else cam.undistort_image(frame.depth))
-
-
-def _write_trajectories(out: Path, result: FrontendResult) -> None:
-    kf = result.keyframe_trajectory()
-    write_tum(out / "keyframes_odometry.txt", kf)
-    write_kitti(out / "keyframes_odometry.kitti", kf)
-    allf = result.all_frame_trajectory()
-    write_tum(out / "frames_odometry.txt", allf)
-    write_kitti(out / "frames_odometry.kitti", allf)
-    lines = ["index,timestamp,keyframe,interpolated,disparity_px,tracked,reason"]
-    for (idx, ts, d), interp in zip(result.decisions, allf.interpolated, strict=True):
-        lines.append(f"{idx},{ts:.9f},{int(d.is_keyframe)},{int(interp)},{d.disparity:.3f},{d.tracked},{d.reason}")
-    atomic_write_text(out / "frames.csv", "\n".join(lines) + "\n")
-
-
-def _ate(gt_pair, est: Trajectory) -> dict:
-    from vggt_slam_pp.eval import compute_ate
-
-    _, gt = gt_pair
-    try:
-        ate = compute_ate(gt, est, "sim3")
-    except (EvaluationError, VggtSlamError) as exc:
-        log.warning("ATE not computed: %s", exc)
-        return {}
-    return {"rmse": ate.rmse, "n": ate.n_matched, "scale": ate.scale}
-
-
-def _report(source: FrameSource, config: RunConfig, result: FrontendResult | None, total: float,
-            t_read: float, error: BaseException | None) -> dict:
-    report: dict = {"version": __version__, "backbone": config.backbone.name, "calibrated": config.calibrated,
-                    "frames": len(source), "seconds_total": total, "peak_memory_mb": peak_rss_mb(),
-                    "error": (str(error) or type(error).__name__) if error else None}
-    if result is None:
-        return report
-    kf = result.keyframe_trajectory()
-    timings = {"read_s": t_read, **result.timings}
-    report.update({
-        "frames_processed": len(result.decisions), "keyframes": len(kf), "submaps": len(result.submaps),
-        "fps": len(result.decisions) / total if total > 0 else None,
-        "timings": timings,
-        "path_length_odometry": kf.path_length(),
-        "edges": [{"prev": e.prev, "curr": e.curr, "method": e.method, "residual": e.residual,
-                   "inlier_ratio": e.inlier_ratio, "correspondences": e.num_correspondences,
-                   "shared_frames": e.shared_frames, "degraded": e.degraded, "cause": e.cause}
-                  for e in result.edges],
-        "degraded_edges": sum(e.degraded for e in result.edges),
-        "recovered_edges": sum(bool(e.cause) and not e.degraded for e in result.edges),
-        "registered_frames": int(sum(sm.prediction.valid[sm.overlap:].sum() for sm in result.submaps)),
-        "invalid_frames": [int(i) for sm in result.submaps for i, v in
-                           zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
-        "points_per_submap": [sm.prediction.info.get("points_after_filter", sm.prediction.num_points())
-                              for sm in result.submaps],
-    })
-    gt_pair = source.frame_ground_truth()
-    if gt_pair is not None:
-        ate = _ate(gt_pair, kf)
-        if ate:
-            report["ate_rmse_odometry"] = ate["rmse"]
-            report["ate_odometry"] = ate
-            report["gt_path_length"] = gt_pair[1].path_length()
-        ate_all = _ate(gt_pair, result.all_frame_trajectory())
-        if ate_all:
-            report["ate_rmse_odometry_all_frames"] = ate_all["rmse"]
-    return report

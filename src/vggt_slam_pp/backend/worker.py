@@ -4,7 +4,7 @@ GTSAM holds the GIL during a solve, FAISS and OpenCV take CPU, so the back-end c
 front-end's interpreter without stalling it. :class:`BackendWorker` runs it in a separate process
 (``spawn``) and talks to it through two queues:
 
-* inbox (bounded, ``queue_size``): :class:`SubmapMessage` records; the points travel through the on-disk
+* inbox (bounded, ``WorkerConfig.queue_size``): :class:`SubmapMessage` records; the points travel through the on-disk
   :class:`SubmapStore`, not the queue. A full inbox blocks :meth:`BackendWorker.submit` (back-pressure:
   the front-end never runs unboundedly ahead of a slower back-end);
 * outbox: one :class:`PoseSnapshot` per processed submap, the final :class:`BackendResult`, or an error.
@@ -23,6 +23,7 @@ import queue
 import sys
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
@@ -34,6 +35,23 @@ from vggt_slam_pp.resources import peak_rss_mb
 log = logging.getLogger(__name__)
 
 MODES = ("process", "inline")
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """How the back-end runs beside the front-end (its algorithm is
+    :class:`~vggt_slam_pp.backend.config.BackendConfig`)."""
+
+    mode: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
+    queue_size: int = 128  # bounded inbox of the worker (ids, camera centres, odometry edge; the points are
+    # on disk): the front-end blocks only when the back-end is this many submaps behind
+    threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
+    priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
+    # else nice 19); "low": nice 10; "normal"
+    duty: float = 0.5  # share of the wall time the worker may work while the front-end is still
+    # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless its inbox is
+    # over half full; once the front-end has finished it runs without pauses. Even at idle priority a busy
+    # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
 
 
 def _limit_threads(n: int, with_torch: bool) -> None:
@@ -82,7 +100,7 @@ def _snapshot(plain: tuple) -> PoseSnapshot:
 
 def _behind(inbox, capacity: int) -> bool:
     """True when the inbox is over half full (the worker must not pause then). Where the queue cannot be
-    measured (macOS lacks ``sem_getvalue``) it answers True, so ``worker_duty`` has no effect there: the
+    measured (macOS lacks ``sem_getvalue``) it answers True, so the duty has no effect there: the
     worker never pauses, as before the duty existed."""
     try:
         return inbox.qsize() > capacity // 2
@@ -99,15 +117,15 @@ def _build(config: BackendConfig, folder: str | Path, prior_map: tuple[str, bool
     return backend
 
 
-def _serve(config: BackendConfig, folder: str, inbox, outbox, streaming_done,
+def _serve(config: BackendConfig, worker: WorkerConfig, folder: str, inbox, outbox, streaming_done,
            prior_map: tuple[str, bool] | None = None) -> None:
     """The worker process: build the back-end (seeded with ``prior_map``: folder, localisation only), then
     one snapshot per message until ``None``; while the front-end streams (``streaming_done`` not set) it
-    works ``worker_duty`` of the time."""
+    works ``worker.duty`` of the time."""
     parent = os.getppid()
     try:
-        _lower_priority(config.worker_priority)
-        _limit_threads(config.worker_threads, config.encoder != "hog")
+        _lower_priority(worker.priority)
+        _limit_threads(worker.threads, config.encoder != "hog")
         backend = _build(config, folder, prior_map)
         outbox.put(("ready", None))
         while True:
@@ -124,8 +142,8 @@ def _serve(config: BackendConfig, folder: str, inbox, outbox, streaming_done,
                 return
             t0 = time.perf_counter()
             outbox.put(("snapshot", _plain(backend.add_submap(msg))))
-            duty = config.worker_duty
-            if 0 < duty < 1 and not streaming_done.is_set() and not _behind(inbox, config.queue_size):
+            duty = worker.duty
+            if 0 < duty < 1 and not streaming_done.is_set() and not _behind(inbox, worker.queue_size):
                 streaming_done.wait((time.perf_counter() - t0) * (1.0 / duty - 1.0))
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
@@ -165,16 +183,17 @@ class BackendWorker:
     """Front-end side of the back-end. ``submit`` each finished submap (points already in ``store``),
     read :meth:`latest` for optimised poses, and :meth:`finish` for the final result."""
 
-    def __init__(self, config: BackendConfig, folder: str | Path, mode: str | None = None,
+    def __init__(self, config: BackendConfig, folder: str | Path, worker: WorkerConfig | None = None,
                  start_timeout_s: float = 300.0, prior_map: tuple[str, bool] | None = None) -> None:
         """``prior_map``: (a saved map's folder, localisation only); the worker rasterises and indexes every
         submap of it before it is ready, so give a ``start_timeout_s`` that grows with the map."""
-        mode = mode or config.worker
+        worker = worker or WorkerConfig()
+        mode = worker.mode
         if mode not in MODES:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
-        if not 0 < config.worker_duty <= 1:
-            raise BackendError(f"worker_duty must be in (0, 1], got {config.worker_duty}")
-        self.config, self.mode = config, mode
+        if not 0 < worker.duty <= 1:
+            raise BackendError(f"the worker's duty must be in (0, 1], got {worker.duty}")
+        self.config, self.worker_config, self.mode = config, worker, mode
         self.folder = Path(folder)
         self.store = SubmapStore(self.folder, cache_size=0)  # the writer keeps nothing in memory
         self._latest: PoseSnapshot | None = None
@@ -187,13 +206,13 @@ class BackendWorker:
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
-        self._inbox = ctx.Queue(maxsize=max(1, config.queue_size))
+        self._inbox = ctx.Queue(maxsize=max(1, worker.queue_size))
         self._outbox = ctx.Queue()
         self._streaming_done = ctx.Event()
-        self._proc = ctx.Process(target=_serve, args=(config, str(self.folder), self._inbox, self._outbox,
+        self._proc = ctx.Process(target=_serve, args=(config, worker, str(self.folder), self._inbox, self._outbox,
                                                       self._streaming_done, prior_map),
                                  name="vggt-slam-pp-backend", daemon=True)
-        _start_without_main(self._proc, config.worker_threads)
+        _start_without_main(self._proc, worker.threads)
         self._backend = None
         self._await(lambda kind: kind == "ready", start_timeout_s, "start")
 

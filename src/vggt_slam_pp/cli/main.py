@@ -199,7 +199,6 @@ def _open_input(given: dict):
 
 def cmd_run(args: argparse.Namespace) -> int:
     from vggt_slam_pp.errors import InputError
-    from vggt_slam_pp.io.trajectory import atomic_write_text
     from vggt_slam_pp.pipeline import RunConfig, run
 
     if args.localize_only and not args.map:
@@ -223,15 +222,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         given_input.update(input=str(args.input.resolve()), gt=str(args.gt.resolve()) if args.gt else None,
                            map=str(args.map.resolve()) if args.map else None)
         config, out = run_config_from_args(args), args.out
-    if given_input.get("map") and Path(given_input["map"]).resolve() == Path(out).resolve():
-        raise InputError(f"--out must not be the map's folder {out}: a map is never modified in place")
     source = _open_input(given_input)
-    if not args.resume:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "input.json", json.dumps(given_input, indent=2))
     report = run(source, config, out, progress=_progress(len(source), "frames", disable=args.quiet),
                  resume=bool(args.resume), prior_map=given_input.get("map"),
-                 localize_only=bool(given_input.get("localize_only")))
+                 localize_only=bool(given_input.get("localize_only")),
+                 input_record=None if args.resume else given_input)
     _print_summary(report, out)
     return 0
 

@@ -157,3 +157,21 @@ def reduce_heights(flat: np.ndarray, h: np.ndarray, size: int, reducer: str, tau
             out = np.bincount(flat, weights=w * h, minlength=size) / np.bincount(flat, weights=w, minlength=size)
     out[empty] = np.nan
     return out, counts
+
+
+def fuse_layers(layers) -> tuple[np.ndarray, tuple[int, int]]:
+    """Max over layers given as (origin_px (iu, iv), heights [H,W]) -> (heights [H,W] float32, NaN empty;
+    origin pixel). Layers may be any float dtype (e.g. float16 when stored compactly)."""
+    layers = list(layers)
+    if not layers:
+        raise DemError("no DEM layers to fuse")
+    u0 = min(o[0] for o, _ in layers)
+    v0 = min(o[1] for o, _ in layers)
+    u1 = max(o[0] + h.shape[1] for o, h in layers)
+    v1 = max(o[1] + h.shape[0] for o, h in layers)
+    out = np.full((v1 - v0, u1 - u0), -np.inf, np.float32)
+    for (u, v), h in layers:
+        view = out[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]]
+        np.fmax(view, h.astype(np.float32, copy=False), out=view)
+    out[~np.isfinite(out)] = np.nan
+    return out, (u0, v0)

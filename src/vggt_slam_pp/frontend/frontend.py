@@ -169,6 +169,13 @@ class Frontend:
             self._build(frames)
         if not self.submaps:
             raise FrontendError("no frames were processed")
+        return self.partial_result()
+
+    def partial_result(self) -> FrontendResult | None:
+        """The submaps finished so far (keyframes still being assembled are not in it); None before the
+        first. After an error or an interruption this is what the run's outputs are written from."""
+        if not self.submaps:
+            return None
         return FrontendResult(self.submaps, self.edges, chain(self.edges), self.decisions, dict(self.timings))
 
     # -- one submap ---------------------------------------------------------------------------------

@@ -1,9 +1,15 @@
-"""Per-submap retrieval stage: DEM layer -> encoder -> tile/chip descriptors -> HNSW voting -> VLAD.
+"""The map's place layer (:class:`Gallery`) and the covisibility stage that queries it (SPEC 3.6-3.9).
 
-:class:`CovisibilityStage` is what the back-end calls for every new submap (SPEC 3.6-3.9):
+:class:`Gallery` holds, for every submap in the map, what place recognition needs of its DEM layer: the
+tile descriptors in the FAISS-HNSW :class:`~vggt_slam_pp.retrieval.index.TileIndex`, its VLAD features
+(float16) and the VLAD :class:`~vggt_slam_pp.vpr.vlad.Vocabulary` trained on a bounded sample of them, and
+its DEM structure for geometric re-ranking, all in the map's ground-plane grid (fixed by the first
+submap, or by a saved map). It knows no poses: layers come in the world frame, and the back-end's
+:class:`~vggt_slam_pp.backend.map.Map` decides when a moved submap is described again.
 
-1. rasterise the submap's points (world frame) into its DEM layer (the ground plane and grid are
-   fixed by the first submap);
+:class:`CovisibilityStage` is what the back-end runs for every new submap:
+
+1. rasterise the submap's points (world frame) into its DEM layer;
 2. encode the layer's encoder image once (dense patch features) and compute the gradient weights;
 3. chips (window = whole layer) vote in the HNSW gallery -> covisibility edges; the previous query's
    match (its verified loop when the back-end reported one through :meth:`CovisibilityStage.confirm`,
@@ -12,10 +18,12 @@
    submap that follows a revisit query overlaps the ones next to that query's match;
 4. VLAD of the chips against the tiles of the covisible submaps, then every covisible submap re-ranked
    by DEM structure correlation over yaw and shift (:mod:`vggt_slam_pp.vpr.geometry`) -> loop candidates;
-5. insert the layer's tiles (descriptors and VLADs) into the gallery; refresh the VLAD vocabulary as
-   the gallery grows.
+5. (``insert``) add the layer's tiles (descriptors and VLAD features) to the gallery; the VLAD vocabulary
+   is refreshed as the gallery grows.
 
 Tiles need at least ``min_occupancy`` non-empty pixels to enter the gallery or act as chips.
+``retrieval/`` (encoders, descriptors, the index) and ``vpr/`` (VLAD, structure) are the leaf libraries
+this module puts together.
 """
 
 from __future__ import annotations
@@ -54,7 +62,9 @@ class CovisibilityConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class _Described:
+class Described:
+    """One DEM layer, described: what the gallery stores of it and what its queries use."""
+
     layer: DemLayer
     vfeats: np.ndarray  # [rows, cols, D] VLAD features
     m: np.ndarray  # [rows, cols] cell weights
@@ -76,9 +86,12 @@ class StageResult:
     timings: dict[str, float]
     chip_keys: np.ndarray  # [C,2] (Iu, Iv) of the chips that voted
     chip_descriptors: np.ndarray  # [C,D]
+    described: Described  # the query's layer, ready for :meth:`Gallery.add`
 
 
-class CovisibilityStage:
+class Gallery:
+    """The place layer of the map: one described DEM layer per submap (see the module docstring)."""
+
     def __init__(self, encoder: Encoder, config: CovisibilityConfig | None = None) -> None:
         self.encoder = encoder
         self.config = config or CovisibilityConfig()
@@ -90,10 +103,13 @@ class CovisibilityStage:
         self._tile_cells: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # features, usable tiles, cells/tile
         self._structure: dict[int, Structure] = {}
         self._vlad_seen = 0
-        self._previous: tuple[int, list[int]] | None = None  # (query, its matches) for the sequence prior
 
-    def _ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
-                     median_depth: float | None) -> None:
+    def __contains__(self, submap_id: int) -> bool:
+        return submap_id in self._structure
+
+    def ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
+                    median_depth: float | None) -> None:
+        """Fit the ground plane and grid to the first submap (world frame), unless a grid is set."""
         if self.grid is None:
             plane = fit_ground_plane(points_world, camera_centers)
             if median_depth is None and self.config.dem.tile_size == "auto" and camera_centers is not None \
@@ -107,7 +123,12 @@ class CovisibilityStage:
                 log.warning("tile_px %d is not a multiple of the encoder patch %d", self.grid.tile_px,
                             self.encoder.patch_px)
 
-    def _describe(self, submap_id: int, points_world: np.ndarray) -> _Described:
+    def set_grid(self, grid: DemGrid) -> None:
+        """Use ``grid`` (a saved map's plane and tiles) instead of fitting one to the first submap."""
+        self.grid = grid
+
+    def describe(self, submap_id: int, points_world: np.ndarray) -> Described:
+        """Rasterise and encode a submap's points [N,3] (world frame) in the gallery's grid."""
         c = self.config
         layer = rasterize(points_world, self.grid, submap_id, c.dem.reducer, c.dem.tau)
         heights = fill_holes(layer.heights, c.dem.fill_radius_px)
@@ -122,112 +143,42 @@ class CovisibilityStage:
         tr, tc = tiles.shape[:2]
         usable = (occ[:tr, :tc] >= c.min_occupancy) & (np.linalg.norm(tiles, axis=2) > 0)
         chip_ok = usable & (np.linalg.norm(chips, axis=2) > 0)
-        return _Described(layer, vfeats, m, cpt, tiles, chips, usable, chip_ok, _keys(layer, tr, tc),
-                          layer_structure(layer, self.grid.tile_size, c.geometry))
+        return Described(layer, vfeats, m, cpt, tiles, chips, usable, chip_ok, _keys(layer, tr, tc),
+                         layer_structure(layer, self.grid.tile_size, c.geometry))
 
-    def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
-                median_depth: float | None = None, insert: bool = True, headings: int = 1) -> StageResult:
-        """Query the gallery with a new submap's layer and (``insert``) add its tiles.
+    def vote(self, submap_id: int, chips: np.ndarray) -> list[CovisibilityEdge]:
+        """HNSW voting of a query's chip descriptors [C,D] (:meth:`TileIndex.vote`)."""
+        self._ensure_index(chips.shape[-1])
+        return self.index.vote(submap_id, chips)
 
-        ``headings`` > 1: the chips of copies of the submap turned about the vertical by multiples of
-        360 / ``headings`` degrees vote too (a submap whose heading in the map is unknown: DEM
-        descriptors are not rotation-invariant); the edges keep each match's best score.
-        """
-        c = self.config
-        t = {}
-        t0 = time.perf_counter()
-        self._ensure_grid(points_world, camera_centers, median_depth)
-        t["raster_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        d = self._describe(submap_id, points_world)
-        t["encode_s"] = time.perf_counter() - t0
-        if self.index is None:
-            self.index = TileIndex(d.tiles.shape[2], c.index, self.encoder.name)
-        t0 = time.perf_counter()
-        edges = self.index.vote(submap_id, d.chips[d.chip_ok])
-        if headings > 1:
-            edges = self._vote_turned(submap_id, points_world, headings, edges)
-        edges += self._sequence_edges(submap_id, {e.match for e in edges})
-        t["vote_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        candidates: list[LoopCandidate] = []
-        if self.vocab is None and self._vlad_count() >= c.vlad_clusters * 4:
-            self._train_vocabulary()
-        if self.vocab is not None and edges:
-            tr, tc = d.usable.shape
-            q = tile_vlads(d.vfeats, self.vocab, d.cpt, c.vlad_context_tiles)[:tr, :tc][d.chip_ok]
-            gallery = {e.match: self._vlads_of(e.match) for e in edges}
-            gallery = {k: v for k, v in gallery.items() if len(v)}
-            candidates = rank_candidates(submap_id, q, gallery, c.vlad_min_score)
-        t["vlad_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if c.rerank and edges:
-            structures = {e.match: self._structure[e.match] for e in edges if e.match in self._structure}
-            candidates = rerank_candidates(submap_id, d.structure, structures, candidates, self.grid.tile_size,
-                                           c.geometry)
-        t["rerank_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if insert:
-            self.add(submap_id, d)
-        t["index_s"] = time.perf_counter() - t0
-        self._previous = (submap_id, [candidates[0].match] if candidates else [])
-        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok])
-
-    def add(self, submap_id: int, described: _Described | np.ndarray) -> None:
-        """Insert a submap's tiles into the gallery without querying (``described``: its layer's
-        descriptors, or its points in the world frame; the grid must exist)."""
-        d = described if isinstance(described, _Described) else self._describe(submap_id, described)
-        if self.index is None:
-            self.index = TileIndex(d.tiles.shape[2], self.config.index, self.encoder.name)
+    def add(self, submap_id: int, described: Described | np.ndarray) -> None:
+        """Insert a submap's tiles into the gallery (``described``: its layer's descriptors, or its points in
+        the world frame; the grid must exist)."""
+        d = described if isinstance(described, Described) else self.describe(submap_id, described)
+        self._ensure_index(d.tiles.shape[2])
         self._insert(submap_id, d)
         self._vlad_cells.append(d.vfeats[d.m > 0].reshape(-1, d.vfeats.shape[2]).astype(np.float16))
         self._cap_vlad_cells()
         if self.vocab is not None and self.vocab.needs_refresh(self._vlad_seen):
             self._train_vocabulary()
 
-    def _vote_turned(self, submap_id: int, points_world: np.ndarray, headings: int,
-                     edges: list[CovisibilityEdge]) -> list[CovisibilityEdge]:
-        from vggt_slam_pp.geometry.lie import so3_exp
-
-        best = {e.match: e for e in edges}
-        centre = points_world.mean(0)
-        for k in range(1, headings):
-            R = so3_exp(self.grid.plane.normal * (2 * np.pi * k / headings))
-            d = self._describe(submap_id, (points_world - centre) @ R.T + centre)
-            for e in self.index.vote(submap_id, d.chips[d.chip_ok]):
-                if e.match not in best or e.score > best[e.match].score:
-                    best[e.match] = e
-        return sorted(best.values(), key=lambda e: -e.score)[: self.config.index.top_k]
-
-    def set_grid(self, grid: DemGrid) -> None:
-        """Use ``grid`` (a saved map's plane and tiles) instead of fitting one to the first submap."""
-        self.grid = grid
-
-    def confirm(self, query: int, matches: list[int]) -> None:
-        """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the
-        next query's sequence prior. Ignored unless ``query`` is the last processed submap."""
-        if self._previous is not None and self._previous[0] == query and matches:
-            self._previous = (query, [int(m) for m in matches])
-
-    def _sequence_edges(self, submap_id: int, voted: set[int]) -> list[CovisibilityEdge]:
-        """Edges to the previous query's matches and their +-``sequence_neighbours`` neighbours that are
-        in the gallery, older than the excluded recent submaps and not voted already (score 0)."""
-        n = self.config.sequence_neighbours
-        if n < 0 or self._previous is None:
-            return []
-        newest = submap_id - self.config.index.exclude_recent
-        near = sorted({m + k for m in self._previous[1] for k in range(-n, n + 1)})
-        return [CovisibilityEdge(submap_id, m, 0.0, 0, "sequence") for m in near
-                if m < newest and m in self._structure and m not in voted]
-
     def relocate(self, submap_id: int, points_world: np.ndarray) -> DemLayer:
-        """Re-rasterise and re-index a submap whose pose the back-end changed."""
+        """Describe again a submap whose pose the back-end changed (``points_world``: at the new pose)."""
         if self.index is None or self.grid is None:
             raise RetrievalError("relocate before any submap was processed")
-        d = self._describe(submap_id, points_world)
+        d = self.describe(submap_id, points_world)
         self.index.remove_submap(submap_id)
         self._insert(submap_id, d)
         return d.layer
+
+    def vocabulary(self) -> Vocabulary | None:
+        """The VLAD vocabulary; trained the first time the gallery holds ``4 x vlad_clusters`` features."""
+        if self.vocab is None and self._vlad_count() >= self.config.vlad_clusters * 4:
+            self._train_vocabulary()
+        return self.vocab
+
+    def structures(self, submap_ids) -> dict[int, Structure]:
+        return {i: self._structure[i] for i in submap_ids if i in self._structure}
 
     def tiles_of(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Live gallery tiles of a submap: keys [T,2] and descriptors [T,D]."""
@@ -237,7 +188,23 @@ class CovisibilityStage:
         """Canonical (u, v) of tile centres [T,2] from their keys (Iu, Iv)."""
         return (np.asarray(keys, float) + 0.5) * self.grid.tile_size
 
-    def _insert(self, submap_id: int, d: _Described) -> None:
+    def vlads_of(self, submap_id: int) -> np.ndarray:
+        """VLADs [T,D'] of a submap's usable tiles under the current vocabulary (an LRU of
+        ``vlad_cache_submaps`` submaps)."""
+        if submap_id not in self._tile_vlads:
+            vfeats, usable, cpt = self._tile_cells[submap_id]
+            v = tile_vlads(vfeats.astype(np.float32), self.vocab, cpt, self.config.vlad_context_tiles)
+            tr, tc = usable.shape
+            if len(self._tile_vlads) >= self.config.vlad_cache_submaps:
+                self._tile_vlads.pop(next(iter(self._tile_vlads)))
+            self._tile_vlads[submap_id] = v[:tr, :tc][usable]
+        return self._tile_vlads[submap_id]
+
+    def _ensure_index(self, dim: int) -> None:
+        if self.index is None:
+            self.index = TileIndex(dim, self.config.index, self.encoder.name)
+
+    def _insert(self, submap_id: int, d: Described) -> None:
         self.index.add(submap_id, d.keys[d.usable], d.tiles[d.usable])
         self._tile_cells[submap_id] = (d.vfeats.astype(np.float16), d.usable, d.cpt)  # compact: RAM stays low
         self._structure[submap_id] = d.structure
@@ -260,15 +227,98 @@ class CovisibilityStage:
         self.vocab.trained_on = max(self._vlad_seen, 1)
         self._tile_vlads = {}
 
-    def _vlads_of(self, submap_id: int) -> np.ndarray:
-        if submap_id not in self._tile_vlads:
-            vfeats, usable, cpt = self._tile_cells[submap_id]
-            v = tile_vlads(vfeats.astype(np.float32), self.vocab, cpt, self.config.vlad_context_tiles)
-            tr, tc = usable.shape
-            if len(self._tile_vlads) >= self.config.vlad_cache_submaps:
-                self._tile_vlads.pop(next(iter(self._tile_vlads)))
-            self._tile_vlads[submap_id] = v[:tr, :tc][usable]
-        return self._tile_vlads[submap_id]
+
+class CovisibilityStage:
+    """Queries of the :class:`Gallery` by new submaps, with the sequence prior between consecutive ones."""
+
+    def __init__(self, gallery: Gallery) -> None:
+        self.gallery = gallery
+        self.config = gallery.config
+        self._previous: tuple[int, list[int]] | None = None  # (query, its matches) for the sequence prior
+
+    @classmethod
+    def create(cls, encoder: Encoder, config: CovisibilityConfig | None = None) -> CovisibilityStage:
+        """A stage over a new, empty gallery."""
+        return cls(Gallery(encoder, config))
+
+    @property
+    def grid(self) -> DemGrid | None:
+        return self.gallery.grid
+
+    def process(self, submap_id: int, points_world: np.ndarray, camera_centers: np.ndarray | None = None,
+                median_depth: float | None = None, insert: bool = True, headings: int = 1) -> StageResult:
+        """Query the gallery with a new submap's layer and (``insert``) add its tiles.
+
+        ``headings`` > 1: the chips of copies of the submap turned about the vertical by multiples of
+        360 / ``headings`` degrees vote too (a submap whose heading in the map is unknown: DEM
+        descriptors are not rotation-invariant); the edges keep each match's best score.
+        """
+        c, g = self.config, self.gallery
+        t = {}
+        t0 = time.perf_counter()
+        g.ensure_grid(points_world, camera_centers, median_depth)
+        t["raster_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        d = g.describe(submap_id, points_world)
+        t["encode_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        edges = g.vote(submap_id, d.chips[d.chip_ok])
+        if headings > 1:
+            edges = self._vote_turned(submap_id, points_world, headings, edges)
+        edges += self._sequence_edges(submap_id, {e.match for e in edges})
+        t["vote_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        candidates: list[LoopCandidate] = []
+        vocab = g.vocabulary()
+        if vocab is not None and edges:
+            tr, tc = d.usable.shape
+            q = tile_vlads(d.vfeats, vocab, d.cpt, c.vlad_context_tiles)[:tr, :tc][d.chip_ok]
+            gallery = {e.match: g.vlads_of(e.match) for e in edges}
+            gallery = {k: v for k, v in gallery.items() if len(v)}
+            candidates = rank_candidates(submap_id, q, gallery, c.vlad_min_score)
+        t["vlad_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if c.rerank and edges:
+            candidates = rerank_candidates(submap_id, d.structure, g.structures(e.match for e in edges), candidates,
+                                           g.grid.tile_size, c.geometry)
+        t["rerank_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if insert:
+            g.add(submap_id, d)
+        t["index_s"] = time.perf_counter() - t0
+        self._previous = (submap_id, [candidates[0].match] if candidates else [])
+        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok], d)
+
+    def _vote_turned(self, submap_id: int, points_world: np.ndarray, headings: int,
+                     edges: list[CovisibilityEdge]) -> list[CovisibilityEdge]:
+        from vggt_slam_pp.geometry.lie import so3_exp
+
+        best = {e.match: e for e in edges}
+        centre = points_world.mean(0)
+        for k in range(1, headings):
+            R = so3_exp(self.grid.plane.normal * (2 * np.pi * k / headings))
+            d = self.gallery.describe(submap_id, (points_world - centre) @ R.T + centre)
+            for e in self.gallery.vote(submap_id, d.chips[d.chip_ok]):
+                if e.match not in best or e.score > best[e.match].score:
+                    best[e.match] = e
+        return sorted(best.values(), key=lambda e: -e.score)[: self.config.index.top_k]
+
+    def confirm(self, query: int, matches: list[int]) -> None:
+        """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the
+        next query's sequence prior. Ignored unless ``query`` is the last processed submap."""
+        if self._previous is not None and self._previous[0] == query and matches:
+            self._previous = (query, [int(m) for m in matches])
+
+    def _sequence_edges(self, submap_id: int, voted: set[int]) -> list[CovisibilityEdge]:
+        """Edges to the previous query's matches and their +-``sequence_neighbours`` neighbours that are
+        in the gallery, older than the excluded recent submaps and not voted already (score 0)."""
+        n = self.config.sequence_neighbours
+        if n < 0 or self._previous is None:
+            return []
+        newest = submap_id - self.config.index.exclude_recent
+        near = sorted({m + k for m in self._previous[1] for k in range(-n, n + 1)})
+        return [CovisibilityEdge(submap_id, m, 0.0, 0, "sequence") for m in near
+                if m < newest and m in self.gallery and m not in voted]
 
 
 def _keys(layer: DemLayer, tr: int, tc: int) -> np.ndarray:

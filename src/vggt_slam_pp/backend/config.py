@@ -1,0 +1,47 @@
+"""The back-end's algorithm configuration (how the worker process runs is
+:class:`~vggt_slam_pp.backend.worker.WorkerConfig`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from vggt_slam_pp.backend.graph import GraphConfig
+from vggt_slam_pp.backend.places import CovisibilityConfig
+from vggt_slam_pp.backend.registration import RegistrationConfig
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """Fault injection, for tests of the verification's robustness; off by default."""
+
+    wrong_candidates: float = 0.0  # share of queries given a wrong candidate from beyond the proximity radius
+    # (it goes through verification like any other)
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    encoder: str = "hog"  # "hog" (weight-free) or "dinov2" (vggt_slam_pp.plugins.ENCODERS)
+    encoder_weights: str | None = None  # dinov2: a path or hub name; None = the default resolution
+    covisibility: CovisibilityConfig = field(default_factory=CovisibilityConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    candidates_per_query: int = 3
+    proximity_candidates: int = 2  # also verify the nearest earlier submaps in the current estimate
+    proximity_radius_tiles: float = 10.0
+    far_loop_submaps: int = 10
+    window_neighbours: int = 1
+    dem_max_points: int = 200_000
+    registration_max_points: int = 10_000
+    relocate_min_shift_tiles: float = 0.25
+    cache_submaps: int = 8
+    loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
+    consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
+    consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
+    min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
+    unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
+    unplaced_candidates: int = 6  # its best covisible submaps by votes are all registered
+    placement_votes: int = 3  # a recording is placed in a map by loops from this many of its submaps that agree
+    placement_log_scale: float = 0.15  # on its move within these (|log scale|, degrees, tiles at its centre)
+    placement_deg: float = 10.0
+    placement_trans_tiles: float = 3.0
+    faults: FaultConfig = field(default_factory=FaultConfig)

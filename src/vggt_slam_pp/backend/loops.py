@@ -1,0 +1,277 @@
+"""Loop candidates and their acceptance (SPEC 3.9-3.11): which submaps a new one is registered against, and
+which verified registrations become edges of the pose graph.
+
+:class:`LoopCloser` works on a :class:`~vggt_slam_pp.backend.map.Map`:
+
+1. candidates (:meth:`LoopCloser.candidates`): the best ``candidates_per_query`` by place recognition, plus
+   the ``proximity_candidates`` nearest earlier submaps in the current estimate; a submap of a recording
+   not yet placed in the map gets its ``unplaced_candidates`` best covisible submaps by votes instead;
+2. each is registered and verified (:func:`~vggt_slam_pp.backend.registration.register_loop`) within the
+   bounds odometry allows (:meth:`LoopCloser.bounds`);
+3. a verified loop becomes an edge when it closes a consistent cycle with another verified loop
+   (:meth:`LoopCloser.consistent`, pairwise consistency) or when its correction is within one sigma of the
+   drift model (:meth:`LoopCloser.odometry_consistent`); a loop that would place a recording in the map
+   needs ``placement_votes`` agreeing loops (:meth:`LoopCloser.placement`). Otherwise it waits for a
+   partner ("pending"). Rejected candidates are kept with their reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from vggt_slam_pp.backend.config import BackendConfig
+from vggt_slam_pp.backend.graph import Edge
+from vggt_slam_pp.backend.map import Map, subsample
+from vggt_slam_pp.backend.places import StageResult
+from vggt_slam_pp.backend.registration import (
+    LoopBounds,
+    LoopResult,
+    correction_size,
+    drift_bounds,
+    mutual_matches,
+    register_loop,
+)
+from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse
+
+log = logging.getLogger(__name__)
+
+PENDING = "verified, but no cycle-consistent second loop (yet)"
+
+
+class LoopCloser:
+    """Candidates, verification and acceptance of loops for the submaps of one :class:`Map`; every
+    verified candidate, accepted or not, is in :attr:`loops` with its reason."""
+
+    def __init__(self, config: BackendConfig, map_: Map) -> None:
+        self.config = config
+        self.map = map_
+        self.loops: list[LoopResult] = []
+        self._pending: list[int] = []  # indices in loops: verified, waiting for a consistent partner
+        self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
+
+    @property
+    def tile_size(self) -> float:
+        return self.map.gallery.grid.tile_size
+
+    def accepted_count(self) -> int:
+        return sum(r.accepted for r in self.loops)
+
+    def verified_matches(self, query: int) -> list[int]:
+        """Matches of the verified loops of ``query``, pending ones too."""
+        return [r.match for r in self.loops if r.query == query and (r.accepted or r.reason == PENDING)]
+
+    # -- candidates ---------------------------------------------------------------------------------
+    def candidates(self, sid: int, res: StageResult) -> list[tuple[int, float, float, str]]:
+        """(match, score, margin, source): the best ``candidates_per_query`` by place recognition
+        (VLAD-ranked, then covisibility order; source "retrieval"), plus the ``proximity_candidates``
+        earlier submaps whose point centroid is nearest in the current estimate (within
+        ``proximity_radius_tiles``; "proximity"): retrieval finds loops the estimate has drifted away
+        from, proximity the ones it has not; verification decides for both. With fault injection
+        (``faults.wrong_candidates`` > 0), that share of queries also gets a submap from elsewhere
+        ("injected"). A submap of a recording not yet placed in the map gets its ``unplaced_candidates``
+        best covisible submaps by votes instead, and no proximity candidates (its position means nothing
+        yet)."""
+        m = self.map
+        count = self.config.candidates_per_query
+        if m.is_placed(sid):
+            ranked = [(c.match, c.score) for c in res.candidates]
+            seen = {j for j, _ in ranked}
+            ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
+        else:  # where it lies is unknown: the re-ranking by DEM correlation near the estimate means nothing
+            ranked = [(c.match, c.score) for c in res.edges if c.source == "votes"]
+            count = self.config.unplaced_candidates
+        out = []
+        for k, (j, s) in enumerate(ranked[:count]):
+            nxt = ranked[k + 1][1] if k + 1 < len(ranked) else 0.0
+            out.append((j, s, s - nxt, "retrieval"))
+        if self.config.proximity_candidates and m.has_points(sid) and m.is_placed(sid):
+            here = m.centroid_world(sid)
+            recent = m.gallery.config.index.exclude_recent
+            old = [j for j in m.with_points() if j < sid - recent
+                   and (m.index_new or m.in_gallery(j))]  # localisation only: the map's submaps
+            if old:
+                d = np.array([np.linalg.norm(m.centroid_world(j) - here) for j in old])
+                radius = self.config.proximity_radius_tiles * self.tile_size
+                taken = {j for j, *_ in out}
+                for k in np.argsort(d)[: self.config.proximity_candidates]:
+                    if d[k] <= radius and old[k] not in taken:
+                        out.append((old[k], 0.0, np.inf, "proximity"))
+                out += self._injected(old, d, radius, {j for j, *_ in out})
+        return out
+
+    def _injected(self, old: list[int], dist: np.ndarray, radius: float, taken: set[int]) -> list:
+        """Fault injection: every ``1 / faults.wrong_candidates``-th query gets the nearest earlier submap
+        beyond the proximity radius (a hard negative: close enough to reach registration)."""
+        rate = self.config.faults.wrong_candidates
+        self._queries += 1
+        if rate <= 0 or int(self._queries * rate) == int((self._queries - 1) * rate):
+            return []
+        far = [(dj, j) for j, dj in zip(old, dist, strict=True) if dj > radius and j not in taken]
+        return [(min(far)[1], 0.0, np.inf, "injected")] if far else []
+
+    # -- verification and acceptance ----------------------------------------------------------------
+    def verify(self, sid: int, res: StageResult, points: np.ndarray) -> list[LoopResult]:
+        """Register every candidate of ``sid`` (``points``: its own frame) and decide on each (see the
+        module docstring). Returns the loops that become graph edges now, ``sid``'s and pending ones that
+        found their partner; their edges are already in the graph."""
+        m, g = self.map, self.map.graph
+        accepted: list[LoopResult] = []
+        grid = m.gallery.grid
+        for match, score, margin, source in self.candidates(sid, res):
+            keys, desc = m.gallery.tiles_of(match)
+            ia, ib = mutual_matches(res.chip_descriptors, desc)
+            chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
+            tile_uv = m.gallery.tile_centers_uv(keys[ib])
+            pm = subsample(m.store.get(match), self.config.registration_max_points)
+            r = register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
+                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration)
+            r = dataclasses.replace(r, source=source)
+            log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
+                     sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
+            if not r.accepted:
+                self.loops.append(r)
+                continue
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("verified %d->%d: correction |log s| %.3f, %.1f deg, moves it %.2f", sid, match,
+                          *correction_size(r.correction, m.centroid_world(sid)))
+            if not m.is_placed(sid) and m.is_placed(match):
+                partners = self.placement(r)  # a loop that would place this recording in the map
+                if not partners:
+                    self._wait(r)
+                    continue
+            else:
+                partners = self.consistent(r)
+            if self.config.loop_consistency and not partners and not self.odometry_consistent(r):
+                self._wait(r)
+                continue
+            for k in partners:  # pending partners join now
+                if k in self._pending:
+                    self._pending.remove(k)
+                    self.loops[k] = dataclasses.replace(self.loops[k], accepted=True, reason="accepted")
+                    accepted.append(self._add(self.loops[k]))
+            self.loops.append(r)
+            accepted.append(self._add(r))
+        return accepted
+
+    def _wait(self, r: LoopResult) -> None:
+        self._pending.append(len(self.loops))
+        self.loops.append(dataclasses.replace(r, accepted=False, reason=PENDING))
+
+    def _add(self, r: LoopResult) -> LoopResult:
+        """``r`` becomes a robust loop edge (placing its query's recording in the map first, if it is not)."""
+        m = self.map
+        if not m.is_placed(r.query) and m.is_placed(r.match):
+            members = m.move_segment(m.segment[r.query], self.move(r))  # at the current poses
+            log.info("submaps %d..%d placed in the map by loop %d->%d", members[0], members[-1], r.query, r.match)
+        s_m, _, _ = decompose_sim3(m.graph.poses[r.match])
+        g = m.graph.config
+        trans = max(r.residual, g.loop_trans_sigma_tiles * self.tile_size) / float(s_m)
+        sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
+        m.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", r.to_dict(), r.information))
+        return r
+
+    def move(self, r: LoopResult) -> np.ndarray:
+        """The world-frame move of the query's recording that loop ``r`` asks for, at the current poses."""
+        P = self.map.graph.poses
+        return P[r.match] @ r.T_match_query @ sim3_inverse(P[r.query])
+
+    def placement(self, r: LoopResult) -> list[int]:
+        """Pending loops (indices in :attr:`loops`) from the same unplaced recording to the map that agree
+        with ``r`` on where the recording lies, when together with ``r`` they come from at least
+        ``placement_votes`` distinct query submaps; else []. A place that merely looks like another (a
+        repetitive world) gives one or two loops at a time; the true place keeps giving them as the
+        recording moves on, all asking the same move of the recording."""
+        c, m = self.config, self.map
+        seg = m.segment[r.query]
+        C = self.move(r)
+        centre = np.mean([m.graph.poses[i][:3, 3] for i in m.members(seg)], axis=0)
+        tol = c.placement_trans_tiles * self.tile_size
+        agree, queries = [], {r.query}
+        for k in self._pending:
+            o = self.loops[k]
+            if m.segment[o.query] != seg or not m.is_placed(o.match) or o.T_match_query is None:
+                continue
+            log_s, angle, moved = correction_size(sim3_inverse(C) @ self.move(o), centre)
+            if log_s <= c.placement_log_scale and angle <= c.placement_deg and moved <= tol:
+                agree.append(k)
+                queries.add(o.query)
+        return agree if len(queries) >= c.placement_votes else []
+
+    def consistent(self, r: LoopResult) -> list[int]:
+        """Indices (in :attr:`loops`) of the verified loops, accepted or pending, that close a consistent
+        cycle with ``r`` (pairwise consistency, as in PCM): loops (q, m) and (q', m') with |q - q'| and
+        |m - m'| at most ``consistency_submaps`` (not both zero) predict each other through the short
+        odometry chains q -> q' and m -> m' (current estimate): ``E = (O_m Z') ^ -1 Z O_q`` must be the
+        identity within what odometry drifts over those chains (3 sigma of the registration's drift model in
+        scale and angle; ``consistency_trans_tiles`` plus ``translation_drift`` of the two chains' length).
+        A wrong loop is a random alignment: it rarely agrees with another."""
+        c, reg, m = self.config, self.config.registration, self.map
+        P = m.graph.poses
+        out = []
+        for k, o in enumerate(self.loops):
+            if not (o.accepted or k in self._pending) or o.T_match_query is None:
+                continue
+            dq, dm = abs(o.query - r.query), abs(o.match - r.match)
+            if dq > c.consistency_submaps or dm > c.consistency_submaps or (dq == 0 and dm == 0):
+                continue
+            if not (m.same_segment(o.query, r.query) and m.same_segment(o.match, r.match)):
+                continue  # the cycle needs odometry between the two queries and between the two matches
+            O_m = sim3_inverse(P[r.match]) @ P[o.match]
+            O_q = sim3_inverse(P[r.query]) @ P[o.query]
+            E = sim3_inverse(O_m @ o.T_match_query) @ r.T_match_query @ O_q
+            s, R, t = decompose_sim3(E)
+            walk = 3.0 * np.sqrt(max(dq + dm, 1))
+            s_q2, _, _ = decompose_sim3(P[o.query])  # E maps the other query's frame onto itself: its units
+            chains = m.path(r.query, o.query) + m.path(r.match, o.match)
+            tol_t = (c.consistency_trans_tiles * self.tile_size + reg.translation_drift * chains) / float(s_q2)
+            ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+            log.debug("cycle %d->%d / %d->%d: scale %.3f, angle %.2f deg, translation %.2f (tolerance %.2f)",
+                      r.query, r.match, o.query, o.match, s, ang, np.linalg.norm(t), tol_t)
+            if (abs(np.log(s)) <= walk * reg.scale_sigma_per_submap and ang <= walk * reg.yaw_sigma_per_submap_deg
+                    and np.linalg.norm(t) <= tol_t):
+                out.append(k)
+        return out
+
+    def odometry_consistent(self, r: LoopResult) -> bool:
+        """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`) closes
+        a consistent cycle with the odometry chain itself: it needs no partner loop."""
+        if not self.map.same_segment(r.match, r.query):
+            return False  # a loop that would place a recording needs a cycle-consistent partner
+        b = self.bounds(r.match, r.query)
+        log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
+        return log_s <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3 and moved <= b.max_translation / 3
+
+    def bounds(self, match: int, query: int) -> LoopBounds:
+        """What odometry can have drifted between ``match`` and ``query`` (submap ids):
+        :func:`~vggt_slam_pp.backend.registration.drift_bounds` over the chain between them in the
+        current estimate, with its degraded edges."""
+        m = self.map
+        if not m.same_segment(match, query):  # no odometry between them: physical limits
+            return LoopBounds(self.config.registration.max_scale_change, np.inf, 180.0)
+        lo, hi = min(match, query), max(match, query)
+        steps = m.steps(lo, hi)
+        degraded = [float(steps[e.i - lo]) for e in m.graph.edges if e.kind == "odometry" and lo <= e.i < hi
+                    and e.info.get("degraded") and e.i - lo < len(steps)]
+        return drift_bounds(self.config.registration, hi - lo, float(steps.sum()), self.tile_size, degraded)
+
+    def prune(self, min_weight: float) -> int:
+        """Loops the robust pose graph switched off (weight below ``min_weight`` after a global solve:
+        odometry and the other loops cannot explain them) leave the graph and are reported as rejected.
+        Returns how many left."""
+        g = self.map.graph
+        weights = g.loop_weights()
+        loops = [e for e in g.edges if e.kind == "loop"]
+        out = {(e.j, e.i): w for e, w in zip(loops, weights, strict=True) if w < min_weight}
+        if not out:
+            return 0
+        g.edges = [e for e in g.edges if e.kind != "loop" or (e.j, e.i) not in out]
+        for k, r in enumerate(self.loops):
+            if r.accepted and (r.query, r.match) in out:
+                self.loops[k] = dataclasses.replace(
+                    r, accepted=False, reason=f"rejected by the pose graph: odometry and the other loops do not "
+                                              f"explain it (robust weight {out[(r.query, r.match)]:.3f})")
+        log.info("%d loop(s) left the graph at the end (robust weight < %g)", len(out), min_weight)
+        return len(out)

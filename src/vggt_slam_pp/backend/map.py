@@ -1,0 +1,216 @@
+"""The map: everything the back-end knows, in one object (SPEC 3.6, 3.10-3.12).
+
+:class:`Map` owns
+
+* the Sim(3) :class:`~vggt_slam_pp.backend.graph.PoseGraph` (optimised ``T_world_submap`` per submap, odometry
+  and loop edges) and the odometry-only poses beside it;
+* the :class:`~vggt_slam_pp.backend.store.SubmapStore` (each submap's points, submap frame, on disk);
+* the :class:`~vggt_slam_pp.backend.places.Gallery` (the DEM plane and grid, the tile index, the VLAD
+  vocabulary, the structures) and the pose each submap's DEM layer was rasterised with: when the graph
+  moves a submap by more than ``relocate_min_shift_tiles`` its layer is rasterised and indexed again
+  (:meth:`Map.refresh_layers`);
+* the segments: chains of submaps linked by odometry. A recording added to a saved map starts a new one,
+  not placed in the map's frame until a loop places it (:meth:`Map.move_segment`).
+
+It is built empty (a new run) or from a saved map (:meth:`Map.seed`); :mod:`vggt_slam_pp.backend.mapfile`
+reads and writes it on disk. The back-end's policies (candidates, verification, when to optimise) live
+in :class:`~vggt_slam_pp.backend.backend.Backend`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from vggt_slam_pp.backend.graph import Edge, PoseGraph
+from vggt_slam_pp.backend.places import Described, Gallery
+from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.frontend.types import OdometryEdge
+from vggt_slam_pp.geometry.lie import transform_points
+from vggt_slam_pp.resources import release_free_memory
+
+log = logging.getLogger(__name__)
+
+
+def subsample(points: np.ndarray, n: int) -> np.ndarray:
+    """At most ``n`` of ``points`` [N,3], evenly spaced in their order."""
+    if len(points) <= n:
+        return points
+    return points[np.linspace(0, len(points) - 1, n).astype(np.int64)]
+
+
+class Map:
+    def __init__(self, graph: PoseGraph, store: SubmapStore, gallery: Gallery, layer_max_points: int = 200_000,
+                 relocate_min_shift_tiles: float = 0.25) -> None:
+        self.graph = graph
+        self.store = store
+        self.gallery = gallery
+        self.layer_max_points = layer_max_points
+        self.relocate_min_shift_tiles = relocate_min_shift_tiles
+        self.odometry_poses: dict[int, np.ndarray] = {}
+        self.segment: dict[int, int] = {}  # submap id -> segment id (its first submap)
+        self.placed: set[int] = set()  # segments in the map's frame
+        self.index_new = True  # localisation only: new submaps query the map but do not join its gallery
+        self._extent: dict[int, np.ndarray] = {}  # 8 bounding-box corners per submap (submap frame)
+        self._centroid: dict[int, np.ndarray] = {}  # point centroid per submap (submap frame)
+        self._layer_pose: dict[int, np.ndarray] = {}  # pose each gallery layer was rasterised with
+
+    # -- building it --------------------------------------------------------------------------------
+    def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray) -> np.ndarray:
+        """A new submap (``points`` [N,3], submap frame) enters the graph at ``T_world_prev T_prev_curr``
+        (the optimised previous pose) with its odometry edge weighted by the alignment residual; the first
+        of a segment at the identity. Returns its pose ``T_world_submap`` [4,4]."""
+        sid, e = submap_id, odometry
+        if e is None:
+            T, T_odo = np.eye(4), np.eye(4)
+            self.segment[sid] = sid
+            if not self.graph.poses:  # the first recording defines the map's frame; a later one (a recording
+                self.placed.add(sid)  # beside a map) is its own part of the graph until a loop places it
+        else:
+            if e.prev not in self.graph.poses:
+                raise BackendError(f"odometry edge {e.prev}->{e.curr} refers to an unknown submap")
+            T = self.graph.poses[e.prev] @ e.T_prev_curr
+            T_odo = self.odometry_poses[e.prev] @ e.T_prev_curr
+            self.segment[sid] = self.segment[e.prev]
+        self.graph.add_node(sid, T)
+        self.odometry_poses[sid] = T_odo
+        if e is not None:
+            self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
+                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded), "odometry",
+                                     {"residual": e.residual, "degraded": e.degraded}))
+        if len(points):
+            self._remember_extent(sid, points)
+        return T
+
+    def seed(self, saved, localize_only: bool = False) -> None:
+        """Start from a saved map (:class:`~vggt_slam_pp.backend.mapfile.SavedMap`, its points already in
+        this map's store): its submaps enter the graph at their poses with their odometry and loop edges,
+        and their layers the gallery, in the saved DEM plane and tiles; nothing is queried.
+        ``localize_only``: the saved submaps stay fixed and new ones do not join the gallery."""
+        from vggt_slam_pp.dem import DemGrid, GroundPlane
+
+        if self.graph.poses:
+            raise BackendError("a map can only seed an empty back-end")
+        self.gallery.set_grid(DemGrid.create(GroundPlane.from_dict(saved.plane), dataclasses.replace(
+            self.gallery.config.dem, tile_size=saved.tile_size)))
+        for sm in saved.submaps:
+            self.graph.add_node(sm.id, sm.T_world_submap)
+            self.odometry_poses[sm.id] = sm.T_world_submap.copy()
+            first = sm.id if sm.id == 0 or not any(e.kind == "odometry" and e.j == sm.id for e in saved.edges) \
+                else self.segment[sm.id - 1]
+            self.segment[sm.id] = first
+            if sm.placed:
+                self.placed.add(first)
+            points = self.store.get(sm.id)
+            if len(points) >= 3:
+                self._remember_extent(sm.id, points)
+                self.gallery.add(sm.id, self.layer_points(sm.id))
+                self._layer_pose[sm.id] = sm.T_world_submap.copy()
+        for e in saved.edges:
+            self.graph.add_edge(e)
+        if localize_only:  # the map's submaps are held where they are; new ones do not join the gallery
+            self.graph.anchors |= set(self.graph.poses)
+            self.index_new = False
+        log.info("map seeded: %d submaps, %d edges%s", len(saved.submaps), len(saved.edges),
+                 " (localisation only)" if localize_only else "")
+
+    def index_layer(self, submap_id: int, described: Described) -> None:
+        """Add a submap's described layer (at its current pose) to the gallery."""
+        self.gallery.add(submap_id, described)
+        self._layer_pose[submap_id] = self.graph.poses[submap_id].copy()
+
+    def _remember_extent(self, sid: int, points: np.ndarray) -> None:
+        self._centroid[sid] = points.mean(0)
+        lo, hi = points.min(0), points.max(0)
+        self._extent[sid] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    # -- reading it ---------------------------------------------------------------------------------
+    def layer_points(self, submap_id: int) -> np.ndarray:
+        """The submap's points for its DEM layer [<= layer_max_points, 3], world frame at its current pose."""
+        return transform_points(self.graph.poses[submap_id],
+                                subsample(self.store.get(submap_id), self.layer_max_points))
+
+    def centroid_world(self, submap_id: int) -> np.ndarray:
+        """The submap's point centroid [3] at its current pose."""
+        return transform_points(self.graph.poses[submap_id], self._centroid[submap_id][None])[0]
+
+    def has_points(self, submap_id: int) -> bool:
+        return submap_id in self._centroid
+
+    def with_points(self) -> list[int]:
+        """Submaps with points, in insertion order."""
+        return list(self._centroid)
+
+    def in_gallery(self, submap_id: int) -> bool:
+        return submap_id in self._layer_pose
+
+    def is_placed(self, submap_id: int) -> bool:
+        """Whether the submap's segment is in the map's frame."""
+        return self.segment.get(submap_id) in self.placed
+
+    def same_segment(self, a: int, b: int) -> bool:
+        """Whether odometry links submaps ``a`` and ``b``."""
+        return self.segment.get(a) == self.segment.get(b)
+
+    def members(self, segment: int) -> list[int]:
+        return sorted(i for i, g in self.segment.items() if g == segment)
+
+    def steps(self, a: int, b: int) -> np.ndarray:
+        """Lengths [n] of the steps between consecutive submap origins from ``a`` to ``b`` (current estimate)."""
+        lo, hi = min(a, b), max(a, b)
+        centres = [self.graph.poses[i][:3, 3] for i in range(lo, hi + 1) if i in self.graph.poses]
+        return np.linalg.norm(np.diff(centres, axis=0), axis=1) if len(centres) > 1 else np.zeros(0)
+
+    def path(self, a: int, b: int) -> float:
+        """Length of the chain of submap origins between submaps ``a`` and ``b`` in the current estimate."""
+        return float(self.steps(a, b).sum())
+
+    def placed_submaps(self) -> list[int]:
+        """Submaps in the map's frame: those the pose graph connects to the map's first submap (all of them
+        for a single recording). A recording whose placing loops the final robust solve dropped is not."""
+        if not self.graph.poses:
+            return []
+        root = self.graph.component_roots()
+        first = root[min(self.graph.poses)]
+        return sorted(i for i, r in root.items() if r == first and self.segment.get(i) in self.placed)
+
+    # -- changing it --------------------------------------------------------------------------------
+    def move_segment(self, segment: int, C: np.ndarray) -> list[int]:
+        """Move every submap of ``segment`` by the world-frame Sim(3) ``C`` [4,4] (its odometry poses too),
+        describe their layers again, and count the segment as placed. Returns its submaps."""
+        members = self.members(segment)
+        for i in members:
+            self.graph.poses[i] = C @ self.graph.poses[i]
+            self.odometry_poses[i] = C @ self.odometry_poses[i]
+            if i in self._layer_pose:
+                self._relocate(i)
+        self.placed.add(segment)  # segments stay the odometry chains: drift bounds and cycles still follow them
+        return members
+
+    def refresh_layers(self, before: dict[int, np.ndarray]) -> int:
+        """After the graph moved submaps (``before``: their poses until then), rasterise and index again the
+        layers that moved by at least ``relocate_min_shift_tiles`` since they were rasterised. Returns how
+        many."""
+        grid = self.gallery.grid
+        thr = self.relocate_min_shift_tiles * (grid.tile_size if grid else 1.0)
+        moved = 0
+        for i, T in self.graph.poses.items():
+            if i not in self._layer_pose or i not in self._extent:
+                continue
+            now = transform_points(T, self._extent[i])
+            if np.abs(now - transform_points(before[i], self._extent[i])).max() < 1e-12:
+                continue
+            shift = np.linalg.norm(now - transform_points(self._layer_pose[i], self._extent[i]), axis=1).max()
+            if shift >= thr:
+                self._relocate(i)
+                moved += 1
+        if moved:
+            release_free_memory()
+        return moved
+
+    def _relocate(self, i: int) -> None:
+        self.gallery.relocate(i, self.layer_points(i))
+        self._layer_pose[i] = self.graph.poses[i].copy()

@@ -298,7 +298,7 @@ def test_worker_error_reraises_in_the_caller(tmp_path, rng):
     from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
     from vggt_slam_pp.frontend.types import OdometryEdge
 
-    worker = BackendWorker(BackendConfig(), tmp_path / "s", WorkerConfig(queue_size=1))
+    worker = BackendWorker(BackendConfig(), tmp_path / "s", worker=WorkerConfig(queue_size=1))
     worker.store.put(0, rng.normal(size=(500, 3)))
     worker.submit(SubmapMessage(0, np.zeros((2, 3)), None))
     worker.store.put(7, rng.normal(size=(500, 3)))
@@ -321,10 +321,10 @@ def test_worker_rejects_an_unknown_mode_and_a_bad_duty(tmp_path):
     from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
 
     with pytest.raises(BackendError, match="unknown back-end mode 'threads'"):
-        BackendWorker(BackendConfig(), tmp_path, WorkerConfig(mode="threads"))
+        BackendWorker(BackendConfig(), tmp_path, worker=WorkerConfig(mode="threads"))
     for duty in (0.0, 1.5):
         with pytest.raises(BackendError, match="duty must be in"):
-            BackendWorker(BackendConfig(), tmp_path, WorkerConfig(duty=duty))
+            BackendWorker(BackendConfig(), tmp_path, worker=WorkerConfig(duty=duty))
 
 
 @pytest.mark.timeout(900)

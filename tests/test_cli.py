@@ -242,6 +242,9 @@ def test_presets_and_bad_configuration_files(tmp_path, capsys):
     old = RunConfig.load(older)
     assert (old.worker.mode, old.worker.duty, old.worker.queue_size) == ("inline", 0.25, 4)
     assert old.backend_config.faults.wrong_candidates == 0.1 and old.backend_config.candidates_per_query == 2
+    older.write_text('{"backend_config": {"loop_information": "isotropic"}}')  # gone: refused, not ignored
+    with pytest.raises(InputError, match="loop_information 'isotropic' is no longer supported"):
+        RunConfig.load(older)
     bad.write_text("{not json")
     _one_line_error(*_run(capsys, "run", "--input", tmp_path, "--config", bad, "--out", tmp_path / "x", "-q"),
                     "not JSON")

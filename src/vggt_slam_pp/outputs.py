@@ -12,8 +12,8 @@
 
 With the back-end (:func:`write_backend_outputs`):
 
-* ``keyframes.txt`` / ``.kitti``, ``frames.txt`` / ``.kitti``: the corrected trajectory (the odometry-only
-  files are written by the pipeline beside them);
+* ``keyframes.txt`` / ``.kitti``, ``frames.txt`` / ``.kitti``: the corrected trajectory (beside the
+  odometry-only files);
 * ``graph.json``: nodes (corrected and odometry ``T_world_submap``, frames, keyframe camera centres), edges (odometry and loop, with
   sigmas and robust weights), covisibility edges with scores, every loop candidate with its verdict;
 * ``map.ply``: the fused point cloud (each submap subsampled to ``ply_points_per_submap`` points, in its

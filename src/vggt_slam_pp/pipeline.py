@@ -100,10 +100,14 @@ _MOVED_TO_WORKER = {"worker": "mode", "queue_size": "queue_size", "worker_thread
 
 def _upgrade(data):
     """A ``config.json`` written by an earlier version, in today's form: moved keys follow (the worker's
-    settings, fault injection), the removed ``loop_information`` (always "icp" now) is dropped."""
+    settings, fault injection); the removed ``loop_information`` is dropped when it was "icp" (today's
+    behaviour) and refused otherwise."""
     if not isinstance(data, dict) or not isinstance(data.get("backend_config"), dict):
         return data
     b, data = dict(data["backend_config"]), dict(data)
+    if b.get("loop_information", "icp") != "icp":
+        raise InputError(f"backend_config.loop_information {b['loop_information']!r} is no longer supported "
+                         "(loop edges always carry the registration's information); remove the key")
     moved = {new: b.pop(old) for old, new in _MOVED_TO_WORKER.items() if old in b}
     if moved:
         data["worker"] = {**moved, **data.get("worker", {})}
@@ -155,10 +159,10 @@ def _run(source: FrameSource, config: RunConfig, out: Path, backbone: Backbone |
     prior = _open_prior_map(prior_map, out, config) if prior_map is not None else None
     if resume and not PredictionStore(out / "predictions").all():
         raise InputError(f"nothing to resume in {out}: no saved predictions (predictions/submap_*.safetensors)")
-    prepare_run_folder(out, config, input_record, keep_predictions=resume)
     reset_peak_rss()  # peak_rss_mb: this run's, not whatever the calling process did before
     t0 = time.perf_counter()
     backbone = backbone or make_backbone(config, source)
+    prepare_run_folder(out, config, input_record, keep_predictions=resume)
     system = SlamSystem(config, out, backbone, resume=resume, prior=prior, localize_only=localize_only)
     n = len(source)
     error: BaseException | None = None
@@ -225,18 +229,21 @@ class SlamSystem:
         self.worker: BackendWorker | None = None
         if config.backend:
             self.worker = BackendWorker(_scale_aware(config.backend_config, backbone), self.out / "submaps",
-                                        config.worker, start_timeout_s=300.0 + 5.0 * first_id,
+                                        worker=config.worker, start_timeout_s=300.0 + 5.0 * first_id,
                                         prior_map=(str(prior.folder), localize_only) if prior is not None else None)
         self.feeder = _BackendFeeder(self.frontend, self.worker, self.out)
         self._undistort = config.calibrated and self.backbone.name != "colmap"  # colmap models distortion itself
         self.frontend_s: float | None = None  # wall time of the frame loop (set by finish)
         self.finish_wait_s = 0.0  # time finish() waited for the back-end's last submaps and global solve
+        self.undistort_s = 0.0  # counted with reading the input in the report
         self._t_start = time.perf_counter()
 
     def process(self, frame) -> None:
         """One input frame; a finished submap goes to the back-end at once."""
         if self._undistort and frame.intrinsics is not None and frame.intrinsics.dist is not None:
+            t = time.perf_counter()
             frame = _undistorted(frame)
+            self.undistort_s += time.perf_counter() - t
         if self.frontend.process(frame) is not None:
             self.feeder.feed()
 
@@ -261,9 +268,9 @@ class SlamSystem:
         return SlamResult(self.frontend.partial_result(), None)
 
     def stats(self, seconds_total: float, read_s: float, error: BaseException | None) -> RunStats:
-        """How the run went, for its report."""
+        """How the run went, for its report (``read_s``: reading the input; undistorting it is added)."""
         w, f = self.worker, self.feeder
-        return RunStats(seconds_total, read_s, error, self.backbone.describe(), self.frontend_s, f.seconds,
+        return RunStats(seconds_total, read_s + self.undistort_s, error, self.backbone.describe(), self.frontend_s, f.seconds,
                         self.finish_wait_s, w.mode if w else None, w.wait_s if w else 0.0, f.memory_trace, f.max_lag)
 
 

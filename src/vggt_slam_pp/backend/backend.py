@@ -126,6 +126,7 @@ class Backend:
                                      insert=False, headings=headings)
             if m.index_new:
                 m.index_layer(sid, res.described)
+            res.described = None  # its dense features are not needed past this point
             self.covisibility += res.edges
             self.timings["covisibility_s"] += time.perf_counter() - t0
             t0 = time.perf_counter()

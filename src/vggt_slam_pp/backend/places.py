@@ -86,7 +86,7 @@ class StageResult:
     timings: dict[str, float]
     chip_keys: np.ndarray  # [C,2] (Iu, Iv) of the chips that voted
     chip_descriptors: np.ndarray  # [C,D]
-    described: Described  # the query's layer, ready for :meth:`Gallery.add`
+    described: Described | None  # the query's layer, for :meth:`Gallery.add` (None once inserted)
 
 
 class Gallery:
@@ -287,7 +287,8 @@ class CovisibilityStage:
             g.add(submap_id, d)
         t["index_s"] = time.perf_counter() - t0
         self._previous = (submap_id, [candidates[0].match] if candidates else [])
-        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok], d)
+        return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok],
+                           None if insert else d)
 
     def _vote_turned(self, submap_id: int, points_world: np.ndarray, headings: int,
                      edges: list[CovisibilityEdge]) -> list[CovisibilityEdge]:

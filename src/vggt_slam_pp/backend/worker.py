@@ -183,7 +183,7 @@ class BackendWorker:
     """Front-end side of the back-end. ``submit`` each finished submap (points already in ``store``),
     read :meth:`latest` for optimised poses, and :meth:`finish` for the final result."""
 
-    def __init__(self, config: BackendConfig, folder: str | Path, worker: WorkerConfig | None = None,
+    def __init__(self, config: BackendConfig, folder: str | Path, *, worker: WorkerConfig | None = None,
                  start_timeout_s: float = 300.0, prior_map: tuple[str, bool] | None = None) -> None:
         """``prior_map``: (a saved map's folder, localisation only); the worker rasterises and indexes every
         submap of it before it is ready, so give a ``start_timeout_s`` that grows with the map."""

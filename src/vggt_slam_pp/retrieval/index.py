@@ -42,7 +42,7 @@ class CovisibilityEdge:
     match: int
     score: float
     votes: int
-    source: str = "votes"  # "votes": HNSW voting; "sequence": the previous query's match (retrieval.covisibility)
+    source: str = "votes"  # "votes": HNSW voting; "sequence": the previous query's match (backend.places)
 
 
 class TileIndex:

@@ -469,3 +469,56 @@ def test_the_map_describes_a_moved_submap_again_only_when_it_moved_enough(tmp_pa
     assert 2.0 < np.linalg.norm(keys1.mean(0) - keys0.mean(0)) < 4.0  # its tiles moved with it (3 tiles)
     assert m.refresh_layers({0: m.graph.poses[0].copy()}) == 0  # nothing moved since
     assert m.placed_submaps() == [0] and m.is_placed(0)
+
+
+def test_map_ply_written_as_a_stream_equals_the_map_built_at_once(loop_sequence, tmp_path):
+    """map.ply is written one submap at a time; it holds, point for point, every submap's points at its
+    final pose after the same voxel filter and subsampling, built here in one go from submaps/ and
+    graph.json."""
+    import dataclasses
+
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.outputs import OutputConfig
+    from vggt_slam_pp.pipeline import run
+
+    config = dataclasses.replace(_small_config(worker="inline"),
+                                 outputs=OutputConfig(ply_points_per_submap=3000, map_voxel=0.4))
+    run(open_source(loop_sequence), config, tmp_path / "out")
+    graph = json.loads((tmp_path / "out" / "graph.json").read_text())
+    expected, plain = [], 0
+    for node in graph["nodes"]:
+        T = np.asarray(node["T_world_submap"])
+        world = np.load(tmp_path / "out" / "submaps" / f"{node['id']:06d}.npy") @ T[:3, :3].T + T[:3, 3]
+        plain += min(len(world), 3000)
+        _, first = np.unique(np.floor(world / 0.4).astype(np.int64), axis=0, return_index=True)
+        world = world[np.sort(first)]
+        if len(world) > 3000:
+            world = world[np.linspace(0, len(world) - 1, 3000).astype(int)]
+        expected.append(world)
+    expected = np.concatenate(expected)
+    raw = (tmp_path / "out" / "map.ply").read_bytes()
+    head, body = raw.split(b"end_header\n", 1)
+    assert f"element vertex {len(expected)}".encode() in head
+    rec = np.frombuffer(body, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"),
+                                        ("b", "u1")]))
+    assert len(rec) == len(expected) < plain  # the voxel filter removed some
+    assert np.allclose(np.c_[rec["x"], rec["y"], rec["z"]], expected, atol=1e-4)
+    assert len({(r, g, b) for r, g, b in zip(rec["r"][::50], rec["g"][::50], rec["b"][::50], strict=True)}) > 3
+    assert not list((tmp_path / "out").glob("*.tmp"))  # no temporary file left
+    # the DEM, fused a layer at a time, equals the max over all layers at once
+    from vggt_slam_pp.dem import DemGrid, GroundPlane, rasterize
+
+    dem = np.load(tmp_path / "out" / "dem" / "dem.npz")
+    grid = DemGrid(GroundPlane.from_dict(graph["plane"]), float(dem["mpp"]),
+                   int(round(graph["tile_size"] / graph["mpp"])))
+    layers = [rasterize(np.load(tmp_path / "out" / "submaps" / f"{n['id']:06d}.npy") @ np.asarray(n["T_world_submap"])[
+        :3, :3].T + np.asarray(n["T_world_submap"])[:3, 3], grid, n["id"]) for n in graph["nodes"]]
+    u0, v0 = (min(la.origin_px[k] for la in layers) for k in (0, 1))
+    whole = np.full((max(la.origin_px[1] + la.heights.shape[0] for la in layers) - v0,
+                     max(la.origin_px[0] + la.heights.shape[1] for la in layers) - u0), np.nan, np.float32)
+    for la in layers:
+        (u, v), h = la.origin_px, la.heights
+        whole[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]] = np.fmax(
+            whole[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]], h)
+    assert tuple(dem["origin_px"]) == (u0, v0) and np.isfinite(whole).any()
+    assert np.allclose(dem["heights"], whole, atol=1e-5, equal_nan=True)

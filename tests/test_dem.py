@@ -171,6 +171,29 @@ def test_fused_dem_is_the_top_of_all_layers(rng):
         fuse_layers([])
 
 
+def test_fusing_layers_one_at_a_time_equals_fusing_them_at_once(rng):
+    """fuse_layers takes a generator and grows its canvas as layers arrive, in any direction; the result
+    is the per-pixel max over the union of the layers' boxes."""
+    from vggt_slam_pp.dem.raster import fuse_layers
+
+    layers = []
+    for _ in range(30):
+        h = rng.normal(size=(int(rng.integers(3, 12)), int(rng.integers(3, 12)))).astype(np.float32)
+        h[rng.random(h.shape) < 0.3] = np.nan
+        layers.append(((int(rng.integers(-60, 60)), int(rng.integers(-60, 60))), h))
+    u0 = min(o[0] for o, _ in layers)
+    v0 = min(o[1] for o, _ in layers)
+    u1 = max(o[0] + h.shape[1] for o, h in layers)
+    v1 = max(o[1] + h.shape[0] for o, h in layers)
+    brute = np.full((v1 - v0, u1 - u0), np.nan, np.float32)
+    for (u, v), h in layers:
+        view = brute[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]]
+        view[:] = np.fmax(view, h)
+    fused, origin = fuse_layers(iter(layers))
+    assert origin == (u0, v0) and fused.shape == brute.shape
+    assert np.array_equal(fused, brute, equal_nan=True)
+
+
 def test_fill_holes_fills_sampling_gaps_only():
     h = np.full((20, 20), np.nan, np.float32)
     h[::4, :10] = 1.0  # rows of samples every 4 px (sparse far ground)

@@ -16,8 +16,9 @@ With the back-end (:func:`write_backend_outputs`):
   odometry-only files);
 * ``graph.json``: nodes (corrected and odometry ``T_world_submap``, frames, keyframe camera centres), edges (odometry and loop, with
   sigmas and robust weights), covisibility edges with scores, every loop candidate with its verdict;
-* ``map.ply``: the fused point cloud (each submap subsampled to ``ply_points_per_submap`` points, in its
-  final pose), coloured by height above the ground plane (yellow ground to dark green, as the DEM);
+* ``map.ply``: the fused point cloud (each submap in its final pose, optionally one point per
+  ``map_voxel`` cube, at most ``ply_points_per_submap`` points), coloured by height above the ground
+  plane (yellow ground to dark green, as the DEM), written one submap at a time;
 * ``dem/``: the fused DEM (colour and grayscale PNG, ``.npz`` with heights, mpp, plane, origin);
 * ``trajectory.png``: odometry, corrected and (when known) ground truth, seen from above.
 
@@ -29,6 +30,7 @@ With the back-end (:func:`write_backend_outputs`):
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import logging
 from dataclasses import dataclass, field
@@ -50,6 +52,13 @@ from vggt_slam_pp.io.trajectory import Trajectory, atomic_write_text, write_kitt
 from vggt_slam_pp.resources import peak_rss_mb
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    ply_points_per_submap: int = 20_000  # map.ply: at most this many points of each submap
+    map_voxel: float = 0.0  # map.ply: one point per cube of this size (world units) in each submap; 0: all
+    dem_max_side_px: int = 4096  # exported DEM: coarser (an integer multiple of the back-end's mpp) beyond this
 
 
 @dataclass
@@ -95,7 +104,7 @@ def write_run_outputs(out: Path, source, config, result: FrontendResult | None, 
         _write_odometry(out, result)
     if result is not None and backend is not None:
         report.update(write_backend_outputs(out, source, result, backend, SubmapStore(out / "submaps", 0),
-                                            prior=prior))
+                                            config.outputs, prior=prior))
         if prior is not None:
             placed = set(backend.placed)
             report["map_submaps"] = len(prior.submaps)
@@ -190,7 +199,7 @@ def _report(source, config, result: FrontendResult | None, stats: RunStats) -> d
 
 
 def write_backend_outputs(out: Path, source, result: FrontendResult, backend: BackendResult, store: SubmapStore,
-                          ply_points_per_submap: int = 20_000, prior=None) -> dict:
+                          config: OutputConfig | None = None, prior=None) -> dict:
     """``prior``: the :class:`~vggt_slam_pp.backend.mapfile.SavedMap` this recording was added to (its
     submaps join ``graph.json``, ``map.ply`` and the DEM)."""
     out = Path(out)
@@ -223,7 +232,7 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         except (EvaluationError, VggtSlamError) as exc:
             log.warning("ATE not computed: %s", exc)
     try:
-        _write_map(out, result, backend, store, ply_points_per_submap)
+        _write_map(out, backend, store, config or OutputConfig())
     except VggtSlamError as exc:  # a map that cannot be drawn must not lose the trajectory
         log.warning("map outputs skipped: %s", exc)
     _plot(out / "trajectory.png", kf_odo, kf, gt)
@@ -250,22 +259,39 @@ def _edge_dict(e, weight: float | None) -> dict:
 
 
 def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, prior=None) -> None:
-    known = [(sm.id, sm.frames, sm.camera_centers) for sm in prior.submaps] if prior is not None else []
-    known += [(sm.id, sm.frame_indices, [sim3_inverse(T)[:3, 3] for T in sm.prediction.T_cam_submap])
-              for sm in result.submaps]
+    """``graph.json``, one record per line as it is produced (no whole-graph copy in memory)."""
     placed = set(backend.placed)
-    nodes = [{"id": i, "frames": [int(f) for f in frames], "T_world_submap": backend.poses[i].tolist(),
-              "T_world_submap_odometry": backend.odometry_poses[i].tolist(),
-              "camera_centers": [np.asarray(c, float).tolist() for c in centres],
-              "placed": i in placed} for i, frames, centres in known]
-    weights = iter(backend.loop_weights)
-    loops = [r.to_dict() for r in backend.loops]
-    graph = {"nodes": nodes,
-             "edges": [_edge_dict(e, next(weights) if e.kind == "loop" else None) for e in backend.edges],
-             "covisibility": [dataclasses.asdict(c) for c in backend.covisibility],
-             "loop_candidates": loops, "rejected": [c for c in loops if not c["accepted"]],
-             "plane": backend.plane, "tile_size": backend.tile_size, "mpp": backend.mpp}
-    atomic_write_text(path, json.dumps(graph, indent=1, default=json_default))
+
+    def nodes():
+        known = ((sm.id, sm.frames, sm.camera_centers) for sm in prior.submaps) if prior is not None else ()
+        mine = ((sm.id, sm.frame_indices, [sim3_inverse(T)[:3, 3] for T in sm.prediction.T_cam_submap])
+                for sm in result.submaps)
+        for i, frames, centres in itertools.chain(known, mine):
+            yield {"id": i, "frames": [int(f) for f in frames], "T_world_submap": backend.poses[i].tolist(),
+                   "T_world_submap_odometry": backend.odometry_poses[i].tolist(),
+                   "camera_centers": [np.asarray(c, float).tolist() for c in centres], "placed": i in placed}
+
+    def edges():
+        weights = iter(backend.loop_weights)
+        for e in backend.edges:
+            yield _edge_dict(e, next(weights) if e.kind == "loop" else None)
+
+    sections = {"nodes": nodes(), "edges": edges(),
+                "covisibility": (dataclasses.asdict(c) for c in backend.covisibility),
+                "loop_candidates": (r.to_dict() for r in backend.loops),
+                "rejected": (r.to_dict() for r in backend.loops if not r.accepted)}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write("{")
+        for k, (name, records) in enumerate(sections.items()):
+            f.write(f'{"," if k else ""}\n "{name}": [')
+            for j, rec in enumerate(records):
+                f.write(("," if j else "") + "\n  " + json.dumps(rec, default=json_default))
+            f.write("\n ]")
+        for name, value in (("plane", backend.plane), ("tile_size", backend.tile_size), ("mpp", backend.mpp)):
+            f.write(f',\n "{name}": {json.dumps(value, default=json_default)}')
+        f.write("\n}\n")
+    tmp.replace(path)
 
 
 def json_default(o):
@@ -277,61 +303,96 @@ def json_default(o):
     return str(o)
 
 
-def _height_colors(h: np.ndarray) -> np.ndarray:
-    lo, hi = np.percentile(h, [1, 99]) if len(h) else (0.0, 1.0)
+def _height_colors(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return height_ramp(np.clip((h - lo) / max(hi - lo, 1e-9), 0, 1)).astype(np.uint8)
 
 
-def _write_map(out: Path, result: FrontendResult, backend: BackendResult, store: SubmapStore, per_submap: int,
-               max_side_px: int = 4096) -> None:
-    """``map.ply`` and the fused DEM. The DEM keeps the back-end's resolution unless the map is larger than
-    ``max_side_px`` pixels on a side; then it is exported at an integer multiple of it (a city-scale run
-    would otherwise need gigabytes for one image)."""
+def submap_cloud(points: np.ndarray, T_world_submap: np.ndarray, per_submap: int, voxel: float = 0.0) -> np.ndarray:
+    """A submap's share of ``map.ply`` [n,3] float32, world frame: its points (submap frame) at its pose, one
+    per ``voxel``-sized cube when ``voxel`` > 0 (the first in the submap's order), then at most
+    ``per_submap`` of them, evenly spaced in that order."""
+    world = transform_points(T_world_submap, points)
+    if voxel > 0 and len(world):
+        keys = np.floor(world / voxel).astype(np.int64)
+        keys -= keys.min(0)
+        dims = keys.max(0) + 1
+        flat = np.ravel_multi_index(keys.T, dims) if float(np.prod(dims.astype(float))) < 2**62 else None
+        first = np.unique(flat, return_index=True)[1] if flat is not None else \
+            np.unique(keys, axis=0, return_index=True)[1]
+        world = world[np.sort(first)]
+    if len(world) > per_submap:
+        world = world[np.linspace(0, len(world) - 1, per_submap).astype(int)]
+    return world.astype(np.float32)
+
+
+_HEIGHT_SAMPLE = 500  # heights per submap that set map.ply's colour range (its 1st and 99th percentiles)
+_PLY_CHUNK = 1 << 20  # points per write when map.ply is assembled
+
+
+def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: OutputConfig) -> None:
+    """``map.ply`` and the fused DEM, one submap at a time (never the whole map in memory).
+
+    The points go to a temporary file as they are transformed (and voxel-filtered); ``map.ply`` is then
+    assembled from it in chunks, coloured by height over a sample's 1st-99th percentile. The DEM keeps
+    the back-end's resolution unless the map is larger than ``dem_max_side_px`` pixels on a side; then it
+    is exported at an integer multiple of it (a city-scale run would otherwise need gigabytes for one
+    image); each submap's layer is fused into it as it is rasterised."""
     if backend.plane is None or backend.mpp is None:
         return
     plane = GroundPlane.from_dict(backend.plane)
-    clouds, lo, hi = [], np.full(2, np.inf), np.full(2, -np.inf)
-    for sid in sorted(backend.poses):
-        pts = store.get(sid)
-        if len(pts) == 0:
-            continue
-        world = transform_points(backend.poses[sid], pts)
-        sel = world if len(world) <= per_submap else world[np.linspace(0, len(world) - 1, per_submap).astype(int)]
-        clouds.append(sel.astype(np.float32))
-        uv = plane.to_canonical(sel)[:, :2]
-        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
-    if not clouds:
+    ids = [sid for sid in sorted(backend.poses) if len(store.get(sid))]
+    if not ids:
         return
-    factor = max(1, int(np.ceil(float(np.max(hi - lo)) / backend.mpp / max_side_px)))
+    body = out / "map.ply.points.tmp"
+    n, lo, hi, sample = 0, np.full(2, np.inf), np.full(2, -np.inf), []
+    with open(body, "wb") as f:
+        for sid in ids:
+            sel = submap_cloud(store.get(sid), backend.poses[sid], config.ply_points_per_submap, config.map_voxel)
+            if not len(sel):
+                continue
+            f.write(sel.tobytes())
+            n += len(sel)
+            can = plane.to_canonical(sel)
+            lo, hi = np.minimum(lo, can[:, :2].min(0)), np.maximum(hi, can[:, :2].max(0))
+            sample.append(can[:: max(1, len(can) // _HEIGHT_SAMPLE), 2])
+    try:
+        h_lo, h_hi = np.percentile(np.concatenate(sample), [1, 99])
+        _write_ply(out / "map.ply", body, n, plane, float(h_lo), float(h_hi))
+    finally:
+        body.unlink(missing_ok=True)
+    factor = max(1, int(np.ceil(float(np.max(hi - lo)) / backend.mpp / config.dem_max_side_px)))
     tile_px = int(round(backend.tile_size / backend.mpp))
     grid = DemGrid(plane, backend.mpp * factor, max(1, tile_px // factor))
     if factor > 1:
-        log.info("DEM export at %.3f m/px (%dx the back-end's) to stay within %d px", grid.mpp, factor, max_side_px)
-    layers = []
-    for sid in sorted(backend.poses):
-        pts = store.get(sid)
-        if len(pts):
-            layer = rasterize(transform_points(backend.poses[sid], pts), grid, sid)
-            layers.append((layer.origin_px, layer.heights.astype(np.float16)))
-    cloud = np.concatenate(clouds)
-    colors = _height_colors(plane.to_canonical(cloud)[:, 2])
-    _write_ply(out / "map.ply", cloud, colors)
-    fused, origin = fuse_layers(layers)
+        log.info("DEM export at %.3f m/px (%dx the back-end's) to stay within %d px", grid.mpp, factor,
+                 config.dem_max_side_px)
+
+    def layers():
+        for sid in ids:
+            layer = rasterize(transform_points(backend.poses[sid], store.get(sid)), grid, sid)
+            yield layer.origin_px, layer.heights
+
+    fused, origin = fuse_layers(layers())
     export_dem(out / "dem", fused, grid.mpp, plane, origin)
 
 
-def _write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    rec = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    rec["r"], rec["g"], rec["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+def _write_ply(path: Path, points_file: Path, n: int, plane: GroundPlane, h_lo: float, h_hi: float) -> None:
+    """Binary little-endian PLY of the ``n`` float32 xyz points in ``points_file``, coloured by height."""
+    rec_type = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
     header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(xyz)}\n"
+              f"element vertex {n}\n"
               "property float x\nproperty float y\nproperty float z\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
     tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
+    with open(tmp, "wb") as f, open(points_file, "rb") as src:
         f.write(header)
-        f.write(rec.tobytes())
+        while chunk := src.read(_PLY_CHUNK * 12):
+            xyz = np.frombuffer(chunk, "<f4").reshape(-1, 3)
+            rgb = _height_colors(plane.to_canonical(xyz)[:, 2], h_lo, h_hi)
+            rec = np.empty(len(xyz), rec_type)
+            rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            rec["r"], rec["g"], rec["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+            f.write(rec.tobytes())
     tmp.replace(path)
 
 

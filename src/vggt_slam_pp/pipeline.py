@@ -34,7 +34,13 @@ from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig, FrontendResult
 from vggt_slam_pp.geometry.lie import sim3_inverse
 from vggt_slam_pp.io.frames import FrameSource
-from vggt_slam_pp.outputs import RunStats, prepare_run_folder, write_keyframes_snapshot, write_run_outputs
+from vggt_slam_pp.outputs import (
+    OutputConfig,
+    RunStats,
+    prepare_run_folder,
+    write_keyframes_snapshot,
+    write_run_outputs,
+)
 from vggt_slam_pp.plugins import BACKBONES
 from vggt_slam_pp.plugins import load as load_plugin
 from vggt_slam_pp.resources import reset_peak_rss, rss_mb
@@ -64,6 +70,7 @@ class RunConfig:
     backend: bool = True  # loop closure; False = odometry only
     backend_config: BackendConfig = field(default_factory=BackendConfig)
     worker: WorkerConfig = field(default_factory=WorkerConfig)  # how the back-end runs beside the front-end
+    outputs: OutputConfig = field(default_factory=OutputConfig)  # map.ply and DEM export
     blas_threads: int = 1  # numpy / scipy BLAS threads in the front-end's process (0: the library's default).
     # The front-end's matrices are small: a second OpenBLAS thread spin-waits more than it computes (2 cores:
     # 88 -> 107 fps on the block loop with 1) and takes the core the back-end worker would use

@@ -161,6 +161,7 @@ _RUN_FLAGS = {
     "overlap": ("frontend.overlap", None), "calibrated": ("calibrated", None),
     "no_save_predictions": ("save_predictions", lambda v: not v), "no_backend": ("backend", lambda v: not v),
     "encoder": ("backend_config.encoder", None), "encoder_weights": ("backend_config.encoder_weights", None),
+    "map_voxel": ("outputs.map_voxel", None),
 }
 
 
@@ -480,6 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--encoder", choices=list(ENCODERS),
                    help="DEM encoder for covisibility (default hog: weight-free)")
     r.add_argument("--encoder-weights", default=None, help="dinov2: weights file or hub name")
+    r.add_argument("--map-voxel", type=float, metavar="METRES",
+                   help="map.ply: keep one point per cube of this size in each submap (default: off)")
     r.add_argument("--layout", default="auto", help="input layout (default: detected)")
     r.add_argument("--gt", type=Path, help="ground-truth trajectory file for evaluation")
     r.add_argument("--stride", type=int, default=1, help="use every N-th input frame")

@@ -161,17 +161,32 @@ def reduce_heights(flat: np.ndarray, h: np.ndarray, size: int, reducer: str, tau
 
 def fuse_layers(layers) -> tuple[np.ndarray, tuple[int, int]]:
     """Max over layers given as (origin_px (iu, iv), heights [H,W]) -> (heights [H,W] float32, NaN empty;
-    origin pixel). Layers may be any float dtype (e.g. float16 when stored compactly)."""
-    layers = list(layers)
-    if not layers:
-        raise DemError("no DEM layers to fuse")
-    u0 = min(o[0] for o, _ in layers)
-    v0 = min(o[1] for o, _ in layers)
-    u1 = max(o[0] + h.shape[1] for o, h in layers)
-    v1 = max(o[1] + h.shape[0] for o, h in layers)
-    out = np.full((v1 - v0, u1 - u0), -np.inf, np.float32)
+    origin pixel). Layers may be any float dtype and any iterable (a generator: one layer in memory at a
+    time); the canvas grows by half its size at least when a layer falls outside it."""
+    out: np.ndarray | None = None
+    u0 = v0 = 0
+    box = (0, 0, 0, 0)  # union of the layers' boxes (u0, v0, u1, v1)
     for (u, v), h in layers:
-        view = out[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]]
+        u, v = int(u), int(v)
+        rows, cols = h.shape
+        box = (u, v, u + cols, v + rows) if out is None else \
+            (min(box[0], u), min(box[1], v), max(box[2], u + cols), max(box[3], v + rows))
+        if out is None:
+            out, u0, v0 = np.full((rows, cols), -np.inf, np.float32), int(u), int(v)
+        elif u < u0 or v < v0 or u + cols > u0 + out.shape[1] or v + rows > v0 + out.shape[0]:
+            grow_u, grow_v = out.shape[1] // 2, out.shape[0] // 2
+            nu0 = min(u0 - grow_u, u) if u < u0 else u0
+            nv0 = min(v0 - grow_v, v) if v < v0 else v0
+            nu1 = max(u0 + out.shape[1] + grow_u, u + cols) if u + cols > u0 + out.shape[1] else u0 + out.shape[1]
+            nv1 = max(v0 + out.shape[0] + grow_v, v + rows) if v + rows > v0 + out.shape[0] else v0 + out.shape[0]
+            grown = np.full((nv1 - nv0, nu1 - nu0), -np.inf, np.float32)
+            grown[v0 - nv0:v0 - nv0 + out.shape[0], u0 - nu0:u0 - nu0 + out.shape[1]] = out
+            out, u0, v0 = grown, nu0, nv0
+        view = out[v - v0:v - v0 + rows, u - u0:u - u0 + cols]
         np.fmax(view, h.astype(np.float32, copy=False), out=view)
+    if out is None:
+        raise DemError("no DEM layers to fuse")
+    cu0, cv0, cu1, cv1 = box  # the canvas may have grown past the layers: crop to their union
+    out = out[cv0 - v0:cv1 - v0, cu0 - u0:cu1 - u0].copy()
     out[~np.isfinite(out)] = np.nan
-    return out, (u0, v0)
+    return out, (cu0, cv0)

@@ -298,7 +298,7 @@ def test_worker_error_reraises_in_the_caller(tmp_path, rng):
     from vggt_slam_pp.backend.worker import BackendWorker, WorkerConfig
     from vggt_slam_pp.frontend.types import OdometryEdge
 
-    worker = BackendWorker(BackendConfig(), tmp_path / "s", worker=WorkerConfig(queue_size=1))
+    worker = BackendWorker(BackendConfig(), tmp_path / "s", worker=WorkerConfig())
     worker.store.put(0, rng.normal(size=(500, 3)))
     worker.submit(SubmapMessage(0, np.zeros((2, 3)), None))
     worker.store.put(7, rng.normal(size=(500, 3)))
@@ -522,3 +522,44 @@ def test_map_ply_written_as_a_stream_equals_the_map_built_at_once(loop_sequence,
             whole[v - v0:v - v0 + h.shape[0], u - u0:u - u0 + h.shape[1]], h)
     assert tuple(dem["origin_px"]) == (u0, v0) and np.isfinite(whole).any()
     assert np.allclose(dem["heights"], whole, atol=1e-5, equal_nan=True)
+
+
+def test_a_slow_backend_never_blocks_the_frontend_and_reports_what_it_skipped(loop_sequence, tmp_path):
+    """A back-end made slow on purpose (0.4 s per submap, fault injection) falls behind: the front-end
+    hands every submap over without waiting, the worker catches up by adding the oldest waiting submaps
+    without querying the map (reported as skipped), and every submap is either queried or skipped."""
+    import dataclasses
+
+    from vggt_slam_pp.backend.backend import BackendConfig, FaultConfig
+    from vggt_slam_pp.backend.worker import WorkerConfig
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.pipeline import run
+
+    base = _small_config()
+    config = dataclasses.replace(base, backend_config=BackendConfig(faults=FaultConfig(slow_submap_s=0.4)),
+                                 worker=WorkerConfig(catch_up_lag=2, duty=1.0))
+    report = run(open_source(loop_sequence), config, tmp_path / "slow")
+    assert report["backend_mode"] == "process"
+    assert report["backend_queue_wait_s"] < 0.05 * report["seconds_total"]  # submit never waited
+    assert report["backend_max_lag_submaps"] > 2  # it did fall behind
+    graph = json.loads((tmp_path / "slow" / "graph.json").read_text())
+    skipped = set(graph["skipped_queries"])
+    assert report["backend_queries_skipped"] == len(skipped) >= 1
+    queried = {e["query"] for e in graph["covisibility"]} | {c["query"] for c in graph["loop_candidates"]}
+    assert not skipped & queried
+    assert len(graph["nodes"]) == report["submaps"]  # every submap is in the map, queried or not
+    assert max(skipped) < report["submaps"] - 1  # the newest submap kept its query
+
+
+@pytest.mark.timeout(600)
+def test_bench_memory_reports_the_long_run_figures(tmp_path):
+    from vggt_slam_pp.benchmarks import bench_memory
+
+    out = bench_memory(submaps=12, workdir=str(tmp_path), width=96, height=72)
+    for key in ("peak_rss_mb_all", "backend_s_per_submap_first100", "backend_s_per_submap_last100",
+                "frontend_submit_wait_fraction", "backend_max_lag_submaps", "ate_reduction", "false_loops",
+                "rss_mb_at_50", "growth"):  # the new keys and the old ones
+        assert key in out, key
+    assert out["peak_rss_mb_all"] >= out["peak_rss_mb"] > 0 and out["false_loops"] >= 0
+    assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
+    assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured

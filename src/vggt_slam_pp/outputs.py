@@ -218,7 +218,10 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         "loops_dropped_by_graph": sum(r.reason.startswith("rejected by the pose graph") for r in backend.loops),
         "backend_s_per_submap": float(np.mean(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_s_per_submap_max": float(np.max(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
+        "backend_seconds_per_submap": [round(float(x), 4) for x in backend.seconds_per_submap],
         "backend_timings": backend.timings,
+        # submaps added while the back-end caught up, without querying the map (WorkerConfig.catch_up_lag)
+        "backend_queries_skipped": len(backend.skipped),
     }
     gt_pair = source.frame_ground_truth()
     gt = None
@@ -279,7 +282,8 @@ def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, pri
     sections = {"nodes": nodes(), "edges": edges(),
                 "covisibility": (dataclasses.asdict(c) for c in backend.covisibility),
                 "loop_candidates": (r.to_dict() for r in backend.loops),
-                "rejected": (r.to_dict() for r in backend.loops if not r.accepted)}
+                "rejected": (r.to_dict() for r in backend.loops if not r.accepted),
+                "skipped_queries": iter(backend.skipped)}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w") as f:
         f.write("{")

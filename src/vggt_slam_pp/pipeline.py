@@ -101,8 +101,8 @@ class RunConfig:
 
 
 # config.json keys of version 0.x runs that moved: BackendConfig's process control went to WorkerConfig
-_MOVED_TO_WORKER = {"worker": "mode", "queue_size": "queue_size", "worker_threads": "threads",
-                    "worker_priority": "priority", "worker_duty": "duty"}
+_MOVED_TO_WORKER = {"worker": "mode", "worker_threads": "threads", "worker_priority": "priority",
+                    "worker_duty": "duty"}
 
 
 def _upgrade(data):
@@ -121,6 +121,7 @@ def _upgrade(data):
     if "inject_wrong_candidates" in b:
         b["faults"] = {"wrong_candidates": b.pop("inject_wrong_candidates")}
     b.pop("loop_information", None)
+    b.pop("queue_size", None)  # the bounded inbox it sized is gone (WorkerConfig.catch_up_lag)
     data["backend_config"] = b
     return data
 

@@ -87,6 +87,7 @@ class BackendResult:
     peak_rss_mb: float = 0.0  # of the back-end's process
     memory_trace: list = field(default_factory=list)  # (submaps done, RSS MiB of the back-end's process)
     placed: list[int] = field(default_factory=list)  # submaps whose poses are in the map's frame
+    skipped: list[int] = field(default_factory=list)  # submaps that did not query the map (back-end behind)
 
 
 class Backend:
@@ -106,6 +107,7 @@ class Backend:
         self.seconds: list[float] = []
         self.timings = {"covisibility_s": 0.0, "registration_s": 0.0, "optimization_s": 0.0, "relocate_s": 0.0}
         self.memory_trace: list[tuple[int, float]] = []
+        self.skipped: list[int] = []  # submaps added without querying the map (a worker catching up)
         self._version = 0
 
     def seed_map(self, saved, localize_only: bool = False) -> None:
@@ -113,13 +115,24 @@ class Backend:
         self.map.seed(saved, localize_only)
 
     # -- the per-submap step --------------------------------------------------------------------
-    def add_submap(self, msg: SubmapMessage) -> PoseSnapshot:
+    def add_submap(self, msg: SubmapMessage, query: bool = True) -> PoseSnapshot:
+        """One new submap. ``query=False`` (a worker catching up): it joins the graph and its layer the
+        gallery, but it does not query the map for loops (reported in :attr:`BackendResult.skipped`)."""
         t_start = time.perf_counter()
+        if self.config.faults.slow_submap_s > 0:
+            time.sleep(self.config.faults.slow_submap_s)
         m, sid = self.map, msg.submap_id
         points = m.store.get(sid)
         T = m.add_submap(sid, msg.odometry, points)
         accepted: list[LoopResult] = []
-        if len(points) >= 3:
+        if len(points) >= 3 and not query and m.gallery.grid is not None:
+            t0 = time.perf_counter()
+            self.stage.skip()
+            if m.index_new:
+                m.index_layer(sid, m.gallery.describe(sid, m.layer_points(sid)))
+            self.skipped.append(sid)
+            self.timings["covisibility_s"] += time.perf_counter() - t0
+        elif len(points) >= 3:
             t0 = time.perf_counter()
             headings = 1 if m.is_placed(sid) else self.config.unplaced_headings
             res = self.stage.process(sid, m.layer_points(sid), transform_points(T, msg.camera_centers),
@@ -188,4 +201,4 @@ class Backend:
             loops=list(self.closer.loops), seconds_per_submap=list(self.seconds),
             timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
             tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,
-            memory_trace=list(self.memory_trace), placed=self.map.placed_submaps())
+            memory_trace=list(self.memory_trace), placed=self.map.placed_submaps(), skipped=list(self.skipped))

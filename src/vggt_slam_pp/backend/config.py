@@ -16,6 +16,7 @@ class FaultConfig:
 
     wrong_candidates: float = 0.0  # share of queries given a wrong candidate from beyond the proximity radius
     # (it goes through verification like any other)
+    slow_submap_s: float = 0.0  # the back-end sleeps this long for every submap (a back-end that cannot keep up)
 
 
 @dataclass(frozen=True)

@@ -304,6 +304,10 @@ class CovisibilityStage:
                     best[e.match] = e
         return sorted(best.values(), key=lambda e: -e.score)[: self.config.index.top_k]
 
+    def skip(self) -> None:
+        """A submap was added without querying: the next query has no previous match to follow."""
+        self._previous = None
+
     def confirm(self, query: int, matches: list[int]) -> None:
         """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the
         next query's sequence prior. Ignored unless ``query`` is the last processed submap."""

@@ -4,9 +4,11 @@ GTSAM holds the GIL during a solve, FAISS and OpenCV take CPU, so the back-end c
 front-end's interpreter without stalling it. :class:`BackendWorker` runs it in a separate process
 (``spawn``) and talks to it through two queues:
 
-* inbox (bounded, ``WorkerConfig.queue_size``): :class:`SubmapMessage` records; the points travel through the on-disk
-  :class:`SubmapStore`, not the queue. A full inbox blocks :meth:`BackendWorker.submit` (back-pressure:
-  the front-end never runs unboundedly ahead of a slower back-end);
+* inbox (unbounded): :class:`SubmapMessage` records; the points travel through the on-disk
+  :class:`SubmapStore`, not the queue, so a message is a few hundred bytes and :meth:`BackendWorker.submit`
+  never blocks. A back-end that falls more than ``WorkerConfig.catch_up_lag`` submaps behind catches up
+  by adding the oldest waiting submaps without querying the map (:meth:`Backend.add_submap`, ``query=False``;
+  they are reported as skipped): the front-end is never stalled, and loop closure stays with the newest;
 * outbox: one :class:`PoseSnapshot` per processed submap, the final :class:`BackendResult`, or an error.
 
 :meth:`BackendWorker.latest` returns the newest snapshot without blocking; an error inside the worker
@@ -17,6 +19,7 @@ in the caller (tests, debugging): identical results, no concurrency.
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import queue
@@ -43,8 +46,10 @@ class WorkerConfig:
     :class:`~vggt_slam_pp.backend.config.BackendConfig`)."""
 
     mode: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
-    queue_size: int = 128  # bounded inbox of the worker (ids, camera centres, odometry edge; the points are
-    # on disk): the front-end blocks only when the back-end is this many submaps behind
+    catch_up_lag: int = 32  # when more submaps than this wait in the worker's inbox (which is unbounded: ids,
+    # camera centres and the odometry edge; the points are on disk), the oldest are added to the map without
+    # querying it (their layers are indexed, no loop candidates; reported as skipped) until it is back under
+    # this lag: the front-end never waits, and the newest submaps keep their loop closure. <= 0: never skip
     threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
@@ -98,16 +103,6 @@ def _snapshot(plain: tuple) -> PoseSnapshot:
     return PoseSnapshot(version, MappingProxyType(poses), loops, last, rss)
 
 
-def _behind(inbox, capacity: int) -> bool:
-    """True when the inbox is over half full (the worker must not pause then). Where the queue cannot be
-    measured (macOS lacks ``sem_getvalue``) it answers True, so the duty has no effect there: the
-    worker never pauses, as before the duty existed."""
-    try:
-        return inbox.qsize() > capacity // 2
-    except NotImplementedError:
-        return True
-
-
 def _build(config: BackendConfig, folder: str | Path, prior_map: tuple[str, bool] | None) -> Backend:
     backend = Backend(config, SubmapStore(folder, config.cache_submaps))
     if prior_map is not None:
@@ -128,22 +123,32 @@ def _serve(config: BackendConfig, worker: WorkerConfig, folder: str, inbox, outb
         _limit_threads(worker.threads, config.encoder != "hog")
         backend = _build(config, folder, prior_map)
         outbox.put(("ready", None))
+        waiting: collections.deque = collections.deque()  # received, not yet processed
         while True:
-            try:
-                msg = inbox.get(timeout=1.0)
-            except queue.Empty:
-                if os.getppid() != parent:  # the caller is gone (killed): stop quietly
-                    return
-                continue
+            if not waiting:
+                try:
+                    waiting.append(inbox.get(timeout=1.0))
+                except queue.Empty:
+                    if os.getppid() != parent:  # the caller is gone (killed): stop quietly
+                        return
+                    continue
+            while True:  # everything sent so far: the backlog decides how to process the oldest
+                try:
+                    waiting.append(inbox.get_nowait())
+                except queue.Empty:
+                    break
+            msg = waiting.popleft()
             if msg is None:
                 result = backend.finish()
                 result.peak_rss_mb = peak_rss_mb()
                 outbox.put(("result", result))
                 return
             t0 = time.perf_counter()
-            outbox.put(("snapshot", _plain(backend.add_submap(msg))))
+            backlog = sum(m is not None for m in waiting)
+            query = worker.catch_up_lag <= 0 or backlog <= worker.catch_up_lag
+            outbox.put(("snapshot", _plain(backend.add_submap(msg, query=query))))
             duty = worker.duty
-            if 0 < duty < 1 and not streaming_done.is_set() and not _behind(inbox, worker.queue_size):
+            if 0 < duty < 1 and not streaming_done.is_set() and backlog <= worker.catch_up_lag // 2:
                 streaming_done.wait((time.perf_counter() - t0) * (1.0 / duty - 1.0))
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
@@ -199,14 +204,14 @@ class BackendWorker:
         self._latest: PoseSnapshot | None = None
         self._result: BackendResult | None = None
         self.submitted = 0
-        self.wait_s = 0.0  # time the caller spent blocked on a full inbox
+        self.wait_s = 0.0  # time the caller spent handing submaps over (the inbox never blocks)
         if mode == "inline":
             self._backend: Backend | None = _build(config, self.folder, prior_map)
             return
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
-        self._inbox = ctx.Queue(maxsize=max(1, worker.queue_size))
+        self._inbox = ctx.Queue()
         self._outbox = ctx.Queue()
         self._streaming_done = ctx.Event()
         self._proc = ctx.Process(target=_serve, args=(config, worker, str(self.folder), self._inbox, self._outbox,
@@ -218,19 +223,15 @@ class BackendWorker:
 
     # -- messages ---------------------------------------------------------------------------------
     def submit(self, msg: SubmapMessage) -> None:
-        """Hand one submap to the back-end; blocks while the inbox is full."""
+        """Hand one submap to the back-end; never blocks (the inbox is unbounded, see the module docstring)."""
         self.submitted += 1
         if self._backend is not None:
             self._latest = self._backend.add_submap(msg)
             return
         t0 = time.perf_counter()
-        while True:
-            self._drain()
-            try:
-                self._inbox.put(msg, timeout=0.2)
-                break
-            except queue.Full:
-                self._check_alive()
+        self._drain()
+        self._check_alive()
+        self._inbox.put(msg)
         self.wait_s += time.perf_counter() - t0
 
     def latest(self) -> PoseSnapshot | None:

@@ -455,19 +455,26 @@ def test_the_map_describes_a_moved_submap_again_only_when_it_moved_enough(tmp_pa
     ground = np.c_[rng.uniform(-15, 15, (6000, 2)), rng.uniform(0, 0.05, 6000)]
     boxes = np.c_[rng.uniform(-3, 3, (3000, 2)), rng.uniform(0, 2.0, 3000)]
     store.put(0, np.r_[ground, boxes])
-    T = m.add_submap(0, None, store.get(0))
+    m.add_submap(0, None, store.get(0))
     gallery.ensure_grid(m.layer_points(0), np.array([[0.0, 0.0, 5.0]]), None)
     m.index_layer(0, gallery.describe(0, m.layer_points(0)))
     keys0, _ = gallery.tiles_of(0)
-    before = {0: T.copy()}
     m.graph.poses[0] = make_sim3(1.0, np.eye(3), np.array([0.2, 0.0, 0.0]))  # 0.1 tile: kept
-    assert m.refresh_layers(before) == 0
-    before = {0: m.graph.poses[0].copy()}
+    assert m.refresh_layers({0}) == 0 and not m.stale
     m.graph.poses[0] = make_sim3(1.0, np.eye(3), np.array([6.0, 0.0, 0.0]))  # 3 tiles: described again
-    assert m.refresh_layers(before) == 1
+    assert m.refresh_layers(set()) == 0  # not among the moved ones: not looked at
+    assert m.refresh_layers({0}) == 1
     keys1, _ = gallery.tiles_of(0)
     assert 2.0 < np.linalg.norm(keys1.mean(0) - keys0.mean(0)) < 4.0  # its tiles moved with it (3 tiles)
-    assert m.refresh_layers({0: m.graph.poses[0].copy()}) == 0  # nothing moved since
+    assert m.refresh_layers({0}) == 0  # nothing moved since it was described
+    m.relocate_budget = 1  # a budget of one layer per refresh: the most moved first
+    store.put(1, store.get(0))
+    m.add_submap(1, None, store.get(1))
+    m.index_layer(1, gallery.describe(1, m.layer_points(1)))
+    m.graph.poses[0] = make_sim3(1.0, np.eye(3), np.array([10.0, 0.0, 0.0]))  # 2 tiles further
+    m.graph.poses[1] = make_sim3(1.0, np.eye(3), np.array([0.0, 12.0, 0.0]))  # 6 tiles
+    assert m.refresh_layers({0, 1}) == 1 and m.stale  # submap 1 now, submap 0 waits
+    assert m.refresh_layers(set()) == 1 and not m.stale
     assert m.placed_submaps() == [0] and m.is_placed(0)
 
 

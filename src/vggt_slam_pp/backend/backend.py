@@ -100,7 +100,7 @@ class Backend:
             encoder = load(ENCODERS, config.encoder, "encoder", RetrievalError).from_config(config.encoder_weights)
         gallery = Gallery(encoder, config.covisibility)
         self.map = Map(PoseGraph(config.graph), store, gallery, config.dem_max_points,
-                       config.relocate_min_shift_tiles)
+                       config.relocate_min_shift_tiles, config.relocate_budget)
         self.stage = CovisibilityStage(gallery)
         self.closer = LoopCloser(config, self.map)
         self.covisibility: list[CovisibilityEdge] = []
@@ -151,6 +151,10 @@ class Backend:
             far = sid - min(r.match for r in accepted) > self.config.far_loop_submaps
             window = None if far else self._window(sid, [n for r in accepted for n in (r.query, r.match)])
             self._optimize(window)
+        elif m.stale:  # layers a solve moved beyond the refresh budget: the next ones now
+            t0 = time.perf_counter()
+            m.refresh_layers(set())
+            self.timings["relocate_s"] += time.perf_counter() - t0
         self.seconds.append(time.perf_counter() - t_start)
         snap = self.snapshot()
         if len(self.seconds) % 10 == 0:
@@ -164,16 +168,16 @@ class Backend:
             window.update(range(n - k, n + k + 1))
         return {n for n in window if n in self.map.graph.poses}
 
-    def _optimize(self, window: set[int] | None) -> None:
+    def _optimize(self, window: set[int] | None, refresh: bool = True) -> None:
+        """Solve the graph (over ``window``, or globally) and (``refresh``) describe moved layers again."""
         t0 = time.perf_counter()
-        graph = self.map.graph
-        before = {i: T.copy() for i, T in graph.poses.items()}
-        graph.optimize(window)
+        moved = set(self.map.graph.optimize(window))
         self.timings["optimization_s"] += time.perf_counter() - t0
         self._version += 1
-        t0 = time.perf_counter()
-        self.map.refresh_layers(before)
-        self.timings["relocate_s"] += time.perf_counter() - t0
+        if refresh:
+            t0 = time.perf_counter()
+            self.map.refresh_layers(moved)
+            self.timings["relocate_s"] += time.perf_counter() - t0
 
     # -- outputs --------------------------------------------------------------------------------
     def snapshot(self) -> PoseSnapshot:
@@ -189,10 +193,10 @@ class Backend:
         """Final global optimisation (when there is any loop), pruning of the loops it switched off, and
         the result."""
         graph = self.map.graph
-        if any(e.kind == "loop" for e in graph.edges):
-            self._optimize(None)
+        if any(e.kind == "loop" for e in graph.edges):  # no query follows: the layers are not described again
+            self._optimize(None, refresh=False)
             if self.closer.prune(self.config.min_loop_weight):
-                self._optimize(None)  # without any loop left this returns the odometry chain
+                self._optimize(None, refresh=False)  # without any loop left this returns the odometry chain
         grid = self.map.gallery.grid
         return BackendResult(
             poses={i: T.copy() for i, T in graph.poses.items()},

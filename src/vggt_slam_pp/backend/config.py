@@ -34,6 +34,8 @@ class BackendConfig:
     dem_max_points: int = 200_000
     registration_max_points: int = 10_000
     relocate_min_shift_tiles: float = 0.25
+    relocate_budget: int = 64  # layers described again after one solve at most (most moved first; the rest
+    # later): a long run's global solve must not stall the back-end; <= 0: all at once
     cache_submaps: int = 8
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart

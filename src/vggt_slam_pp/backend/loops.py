@@ -253,8 +253,7 @@ class LoopCloser:
             return LoopBounds(self.config.registration.max_scale_change, np.inf, 180.0)
         lo, hi = min(match, query), max(match, query)
         steps = m.steps(lo, hi)
-        degraded = [float(steps[e.i - lo]) for e in m.graph.edges if e.kind == "odometry" and lo <= e.i < hi
-                    and e.info.get("degraded") and e.i - lo < len(steps)]
+        degraded = [float(steps[i - lo]) for i in sorted(m.degraded_edges) if lo <= i < hi and i - lo < len(steps)]
         return drift_bounds(self.config.registration, hi - lo, float(steps.sum()), self.tile_size, degraded)
 
     def prune(self, min_weight: float) -> int:

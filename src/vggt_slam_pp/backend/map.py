@@ -44,12 +44,13 @@ def subsample(points: np.ndarray, n: int) -> np.ndarray:
 
 class Map:
     def __init__(self, graph: PoseGraph, store: SubmapStore, gallery: Gallery, layer_max_points: int = 200_000,
-                 relocate_min_shift_tiles: float = 0.25) -> None:
+                 relocate_min_shift_tiles: float = 0.25, relocate_budget: int = 64) -> None:
         self.graph = graph
         self.store = store
         self.gallery = gallery
         self.layer_max_points = layer_max_points
         self.relocate_min_shift_tiles = relocate_min_shift_tiles
+        self.relocate_budget = relocate_budget  # layers described again per refresh at most (<= 0: all)
         self.odometry_poses: dict[int, np.ndarray] = {}
         self.segment: dict[int, int] = {}  # submap id -> segment id (its first submap)
         self.placed: set[int] = set()  # segments in the map's frame
@@ -57,6 +58,8 @@ class Map:
         self._extent: dict[int, np.ndarray] = {}  # 8 bounding-box corners per submap (submap frame)
         self._centroid: dict[int, np.ndarray] = {}  # point centroid per submap (submap frame)
         self._layer_pose: dict[int, np.ndarray] = {}  # pose each gallery layer was rasterised with
+        self._stale: set[int] = set()  # layers that moved enough but wait for a refresh with budget left
+        self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray) -> np.ndarray:
@@ -77,6 +80,8 @@ class Map:
             self.segment[sid] = self.segment[e.prev]
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
+        if e is not None and e.degraded:
+            self.degraded_edges.add(e.prev)
         if e is not None:
             self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
                                      self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded), "odometry",
@@ -111,6 +116,8 @@ class Map:
                 self._layer_pose[sm.id] = sm.T_world_submap.copy()
         for e in saved.edges:
             self.graph.add_edge(e)
+            if e.kind == "odometry" and e.info.get("degraded"):
+                self.degraded_edges.add(e.i)
         if localize_only:  # the map's submaps are held where they are; new ones do not join the gallery
             self.graph.anchors |= set(self.graph.poses)
             self.index_new = False
@@ -190,26 +197,38 @@ class Map:
         self.placed.add(segment)  # segments stay the odometry chains: drift bounds and cycles still follow them
         return members
 
-    def refresh_layers(self, before: dict[int, np.ndarray]) -> int:
-        """After the graph moved submaps (``before``: their poses until then), rasterise and index again the
-        layers that moved by at least ``relocate_min_shift_tiles`` since they were rasterised. Returns how
-        many."""
+    def refresh_layers(self, moved: set[int] | None = None) -> int:
+        """After the graph moved submaps (``moved``: those it may have moved; None: any), rasterise and
+        index again the layers that moved by at least ``relocate_min_shift_tiles`` since they were
+        rasterised: at most ``relocate_budget`` of them, those that moved most first; the others wait for
+        the next refresh (one that finds nothing moved catches up on them). Returns how many."""
         grid = self.gallery.grid
         thr = self.relocate_min_shift_tiles * (grid.tile_size if grid else 1.0)
-        moved = 0
-        for i, T in self.graph.poses.items():
-            if i not in self._layer_pose or i not in self._extent:
+        check = (set(self._layer_pose) if moved is None else moved | self._stale) & set(self._layer_pose)
+        shifts = []
+        for i in check:
+            if i not in self._extent or i not in self.graph.poses:
                 continue
-            now = transform_points(T, self._extent[i])
-            if np.abs(now - transform_points(before[i], self._extent[i])).max() < 1e-12:
-                continue
-            shift = np.linalg.norm(now - transform_points(self._layer_pose[i], self._extent[i]), axis=1).max()
+            T, ext = self.graph.poses[i], self._extent[i]
+            shift = np.linalg.norm(transform_points(T, ext) - transform_points(self._layer_pose[i], ext), axis=1).max()
             if shift >= thr:
-                self._relocate(i)
-                moved += 1
-        if moved:
+                shifts.append((-shift, i))
+            else:
+                self._stale.discard(i)
+        shifts.sort()
+        budget = len(shifts) if self.relocate_budget <= 0 else self.relocate_budget
+        for i in sorted(i for _, i in shifts[:budget]):  # in id order: the HNSW graph depends on insertion order
+            self._relocate(i)
+            self._stale.discard(i)
+        self._stale.update(i for _, i in shifts[budget:])
+        if shifts[:budget]:
             release_free_memory()
-        return moved
+        return min(len(shifts), budget)
+
+    @property
+    def stale(self) -> bool:
+        """Whether layers wait to be described again (the refresh budget ran out)."""
+        return bool(self._stale)
 
     def _relocate(self, i: int) -> None:
         self.gallery.relocate(i, self.layer_points(i))

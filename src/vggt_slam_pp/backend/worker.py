@@ -46,7 +46,7 @@ class WorkerConfig:
     :class:`~vggt_slam_pp.backend.config.BackendConfig`)."""
 
     mode: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
-    catch_up_lag: int = 32  # when more submaps than this wait in the worker's inbox (which is unbounded: ids,
+    catch_up_lag: int = 128  # when more submaps than this wait in the worker's inbox (which is unbounded: ids,
     # camera centres and the odometry edge; the points are on disk), the oldest are added to the map without
     # querying it (their layers are indexed, no loop candidates; reported as skipped) until it is back under
     # this lag: the front-end never waits, and the newest submaps keep their loop closure. <= 0: never skip

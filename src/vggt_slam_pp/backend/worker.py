@@ -54,8 +54,8 @@ class WorkerConfig:
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
     duty: float = 0.5  # share of the wall time the worker may work while the front-end is still
-    # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless its inbox is
-    # over half full; once the front-end has finished it runs without pauses. Even at idle priority a busy
+    # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless more than half
+    # the catch-up lag waits; once the front-end has finished it runs without pauses. Even at idle priority a busy
     # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
 
 

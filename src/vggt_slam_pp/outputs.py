@@ -118,8 +118,8 @@ def write_run_outputs(out: Path, source, config, result: FrontendResult | None, 
         report["memory_trace"] = {"frontend": stats.frontend_memory_trace,
                                   "backend": backend.memory_trace if backend is not None else []}
         report["backend_max_lag_submaps"] = stats.backend_max_lag_submaps
-    # the front-end's own rate: frames over the wall time of the frame loop (any wait on a full back-end
-    # queue or, inline, the back-end's own work included); the final back-end solve is not part of it
+    # the front-end's own rate: frames over the wall time of the frame loop (handing submaps to the back-end
+    # or, inline, the back-end's own work included); the final back-end solve is not part of it
     report["frontend_fps"] = len(result.decisions) / max(stats.frontend_s, 1e-9) \
         if result and stats.frontend_s else None
     backend_peak = backend.peak_rss_mb if backend is not None and stats.backend_mode == "process" else 0.0

@@ -550,7 +550,7 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
             "backend_s_per_submap_last100": float(seconds[-100:].mean()) if len(seconds) >= 200 else None,
             "frontend_submit_wait_fraction": report["timings"]["backend_submit_s"] / frontend_s if frontend_s else None,
             "backend_max_lag_submaps": report.get("backend_max_lag_submaps"),
-            "backend_queries_skipped": report.get("backend_queries_skipped"),
+            "backend_queries_deferred": report.get("backend_queries_deferred"),
             "ate_reduction": report.get("ate_reduction"), "false_loops": len(false), "false_pairs": false}
 
 

@@ -220,8 +220,8 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         "backend_s_per_submap_max": float(np.max(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_seconds_per_submap": [round(float(x), 4) for x in backend.seconds_per_submap],
         "backend_timings": backend.timings,
-        # submaps added while the back-end caught up, without querying the map (WorkerConfig.catch_up_lag)
-        "backend_queries_skipped": len(backend.skipped),
+        # submaps whose query was deferred while the back-end caught up (WorkerConfig.catch_up_lag)
+        "backend_queries_deferred": len(backend.skipped),
     }
     gt_pair = source.frame_ground_truth()
     gt = None
@@ -283,7 +283,7 @@ def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, pri
                 "covisibility": (dataclasses.asdict(c) for c in backend.covisibility),
                 "loop_candidates": (r.to_dict() for r in backend.loops),
                 "rejected": (r.to_dict() for r in backend.loops if not r.accepted),
-                "skipped_queries": iter(backend.skipped)}
+                "deferred_queries": iter(backend.skipped)}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w") as f:
         f.write("{")

@@ -87,7 +87,7 @@ class BackendResult:
     peak_rss_mb: float = 0.0  # of the back-end's process
     memory_trace: list = field(default_factory=list)  # (submaps done, RSS MiB of the back-end's process)
     placed: list[int] = field(default_factory=list)  # submaps whose poses are in the map's frame
-    skipped: list[int] = field(default_factory=list)  # submaps that did not query the map (back-end behind)
+    skipped: list[int] = field(default_factory=list)  # submaps whose query was deferred (back-end behind)
 
 
 class Backend:
@@ -105,9 +105,11 @@ class Backend:
         self.closer = LoopCloser(config, self.map)
         self.covisibility: list[CovisibilityEdge] = []
         self.seconds: list[float] = []
-        self.timings = {"covisibility_s": 0.0, "registration_s": 0.0, "optimization_s": 0.0, "relocate_s": 0.0}
+        self.timings = {"covisibility_s": 0.0, "registration_s": 0.0, "optimization_s": 0.0, "relocate_s": 0.0,
+                        "deferred_s": 0.0}
         self.memory_trace: list[tuple[int, float]] = []
-        self.skipped: list[int] = []  # submaps added without querying the map (a worker catching up)
+        self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
+        self._deferred: list[tuple[int, np.ndarray]] = []  # (submap, camera centres) still to query
         self._version = 0
 
     def seed_map(self, saved, localize_only: bool = False) -> None:
@@ -117,13 +119,14 @@ class Backend:
     # -- the per-submap step --------------------------------------------------------------------
     def add_submap(self, msg: SubmapMessage, query: bool = True) -> PoseSnapshot:
         """One new submap. ``query=False`` (a worker catching up): it joins the graph and its layer the
-        gallery, but it does not query the map for loops (reported in :attr:`BackendResult.skipped`)."""
+        gallery now, and its query of the map for loops is deferred (:meth:`query_deferred`, run when the
+        worker is idle and at :meth:`finish`; listed in :attr:`BackendResult.skipped`)."""
         t_start = time.perf_counter()
         if self.config.faults.slow_submap_s > 0:
             time.sleep(self.config.faults.slow_submap_s)
         m, sid = self.map, msg.submap_id
         points = m.store.get(sid)
-        T = m.add_submap(sid, msg.odometry, points)
+        m.add_submap(sid, msg.odometry, points)
         accepted: list[LoopResult] = []
         if len(points) >= 3 and not query and m.gallery.grid is not None:
             t0 = time.perf_counter()
@@ -131,22 +134,10 @@ class Backend:
             if m.index_new:
                 m.index_layer(sid, m.gallery.describe(sid, m.layer_points(sid)))
             self.skipped.append(sid)
+            self._deferred.append((sid, msg.camera_centers))
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3:
-            t0 = time.perf_counter()
-            headings = 1 if m.is_placed(sid) else self.config.unplaced_headings
-            res = self.stage.process(sid, m.layer_points(sid), transform_points(T, msg.camera_centers),
-                                     insert=False, headings=headings)
-            if m.index_new:
-                m.index_layer(sid, res.described)
-            res.described = None  # its dense features are not needed past this point
-            self.covisibility += res.edges
-            self.timings["covisibility_s"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            accepted = self.closer.verify(sid, res, subsample(points, self.config.registration_max_points))
-            # the sequence prior follows every verified loop, pending ones too: their partner is likely next door
-            self.stage.confirm(sid, self.closer.verified_matches(sid))
-            self.timings["registration_s"] += time.perf_counter() - t0
+            accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
         if accepted:
             far = sid - min(r.match for r in accepted) > self.config.far_loop_submaps
             window = None if far else self._window(sid, [n for r in accepted for n in (r.query, r.match)])
@@ -160,6 +151,45 @@ class Backend:
         if len(self.seconds) % 10 == 0:
             self.memory_trace.append((len(self.seconds), snap.rss_mb))
         return snap
+
+    def _query(self, sid: int, camera_centers: np.ndarray, points: np.ndarray, index: bool) -> list[LoopResult]:
+        """Covisibility, then loop candidates verified and accepted, for submap ``sid`` at its current pose
+        (``index``: its layer joins the gallery too). Returns the loops accepted now."""
+        m = self.map
+        t0 = time.perf_counter()
+        headings = 1 if m.is_placed(sid) else self.config.unplaced_headings
+        res = self.stage.process(sid, m.layer_points(sid), transform_points(m.graph.poses[sid], camera_centers),
+                                 insert=False, headings=headings)
+        if index:
+            m.index_layer(sid, res.described)
+        res.described = None  # its dense features are not needed past this point
+        self.covisibility += res.edges
+        self.timings["covisibility_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        accepted = self.closer.verify(sid, res, subsample(points, self.config.registration_max_points))
+        # the sequence prior follows every verified loop, pending ones too: their partner is likely next door
+        self.stage.confirm(sid, self.closer.verified_matches(sid))
+        self.timings["registration_s"] += time.perf_counter() - t0
+        return accepted
+
+    @property
+    def deferred(self) -> int:
+        """Submaps whose query waits (added while the worker caught up)."""
+        return len(self._deferred)
+
+    def query_deferred(self) -> PoseSnapshot:
+        """Run the oldest deferred query: the submap (already in the graph and the gallery) queries the map
+        at its current pose, as if it had just arrived; only older submaps can be its candidates."""
+        t0 = time.perf_counter()
+        sid, centres = self._deferred.pop(0)
+        self.stage.skip()  # the sequence prior follows consecutive queries only
+        accepted = self._query(sid, centres, self.map.store.get(sid), index=False)
+        self.stage.skip()
+        if accepted:
+            far = sid - min(r.match for r in accepted) > self.config.far_loop_submaps
+            self._optimize(None if far else self._window(sid, [n for r in accepted for n in (r.query, r.match)]))
+        self.timings["deferred_s"] += time.perf_counter() - t0
+        return self.snapshot()
 
     def _window(self, sid: int, matches: list[int]) -> set[int]:
         k = self.config.window_neighbours
@@ -190,8 +220,10 @@ class Backend:
                             max(poses) if poses else -1, rss_mb())
 
     def finish(self) -> BackendResult:
-        """Final global optimisation (when there is any loop), pruning of the loops it switched off, and
-        the result."""
+        """The deferred queries, then the final global optimisation (when there is any loop), pruning of
+        the loops it switched off, and the result."""
+        while self._deferred:
+            self.query_deferred()
         graph = self.map.graph
         if any(e.kind == "loop" for e in graph.edges):  # no query follows: the layers are not described again
             self._optimize(None, refresh=False)

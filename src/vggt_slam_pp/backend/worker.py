@@ -7,8 +7,9 @@ front-end's interpreter without stalling it. :class:`BackendWorker` runs it in a
 * inbox (unbounded): :class:`SubmapMessage` records; the points travel through the on-disk
   :class:`SubmapStore`, not the queue, so a message is a few hundred bytes and :meth:`BackendWorker.submit`
   never blocks. A back-end that falls more than ``WorkerConfig.catch_up_lag`` submaps behind catches up
-  by adding the oldest waiting submaps without querying the map (:meth:`Backend.add_submap`, ``query=False``;
-  they are reported as skipped): the front-end is never stalled, and loop closure stays with the newest;
+  by adding the oldest waiting submaps to the map now and deferring their queries
+  (:meth:`Backend.add_submap`, ``query=False``), which run when the worker is idle and at the end
+  (:meth:`Backend.query_deferred`): the front-end is never stalled, and no loop query is dropped;
 * outbox: one :class:`PoseSnapshot` per processed submap, the final :class:`BackendResult`, or an error.
 
 :meth:`BackendWorker.latest` returns the newest snapshot without blocking; an error inside the worker
@@ -47,9 +48,9 @@ class WorkerConfig:
 
     mode: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
     catch_up_lag: int = 128  # when more submaps than this wait in the worker's inbox (which is unbounded: ids,
-    # camera centres and the odometry edge; the points are on disk), the oldest are added to the map without
-    # querying it (their layers are indexed, no loop candidates; reported as skipped) until it is back under
-    # this lag: the front-end never waits, and the newest submaps keep their loop closure. <= 0: never skip
+    # camera centres and the odometry edge; the points are on disk), the oldest are added to the map with
+    # their queries deferred (run when the worker is idle, and at the end) until it is back under this lag:
+    # the front-end never waits, and no query is dropped. <= 0: never defer
     threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
@@ -127,10 +128,12 @@ def _serve(config: BackendConfig, worker: WorkerConfig, folder: str, inbox, outb
         while True:
             if not waiting:
                 try:
-                    waiting.append(inbox.get(timeout=1.0))
+                    waiting.append(inbox.get(timeout=0.05 if backend.deferred else 1.0))
                 except queue.Empty:
                     if os.getppid() != parent:  # the caller is gone (killed): stop quietly
                         return
+                    if backend.deferred:  # idle: a query deferred while catching up
+                        outbox.put(("snapshot", _plain(backend.query_deferred())))
                     continue
             while True:  # everything sent so far: the backlog decides how to process the oldest
                 try:

@@ -298,12 +298,15 @@ def _open_prior_map(folder: str | Path, out: Path, config: RunConfig):
     store = out / "submaps"
     store.mkdir(parents=True, exist_ok=True)
     for sm in saved.submaps:
-        src, dst = saved.store.path(sm.id), store / saved.store.path(sm.id).name
-        dst.unlink(missing_ok=True)
-        try:
-            os.link(src, dst)  # the points never change: a hard link costs no space
-        except OSError:
-            shutil.copy2(src, dst)
+        for src in (saved.store.path(sm.id), saved.store.colors_path(sm.id)):
+            if not src.is_file():  # colours are optional (older maps have none)
+                continue
+            dst = store / src.name
+            dst.unlink(missing_ok=True)
+            try:
+                os.link(src, dst)  # the points never change: a hard link costs no space
+            except OSError:
+                shutil.copy2(src, dst)
     return saved
 
 
@@ -349,7 +352,8 @@ class _BackendFeeder:
             sm = self.frontend.submaps[self.sent]
             pred = sm.prediction
             pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
-            self.worker.store.put(sm.id, pts)
+            colors = sm.colors if sm.colors is not None and len(sm.colors) == len(pts) else None
+            self.worker.store.put(sm.id, pts, colors)
             centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
             edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
             self.worker.submit(SubmapMessage(sm.id, centres, edge))

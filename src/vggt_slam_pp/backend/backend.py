@@ -127,7 +127,7 @@ class Backend:
             time.sleep(self.config.faults.slow_submap_s)
         m, sid = self.map, msg.submap_id
         points = m.store.get(sid)
-        m.add_submap(sid, msg.odometry, points)
+        m.add_submap(sid, msg.odometry, points, msg.camera_centers)
         accepted: list[LoopResult] = []
         if len(points) >= 3 and not query and m.gallery.grid is not None:
             t0 = time.perf_counter()
@@ -165,7 +165,9 @@ class Backend:
         self.covisibility += res.edges
         self.timings["covisibility_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        accepted = self.closer.verify(sid, res, subsample(points, self.config.registration_max_points))
+        n = self.config.registration_max_points
+        colors = m.store.get_colors(sid) if self.config.registration.use_colour else None
+        accepted = self.closer.verify(sid, res, subsample(points, n), subsample(colors, n) if colors is not None else None)
         # the sequence prior follows every verified loop, pending ones too: their partner is likely next door
         self.stage.confirm(sid, self.closer.verified_matches(sid))
         self.timings["registration_s"] += time.perf_counter() - t0

@@ -113,8 +113,10 @@ class LoopCloser:
         return [(min(far)[1], 0.0, np.inf, "injected")] if far else []
 
     # -- verification and acceptance ----------------------------------------------------------------
-    def verify(self, sid: int, res: StageResult, points: np.ndarray) -> list[LoopResult]:
-        """Register every candidate of ``sid`` (``points``: its own frame) and decide on each (see the
+    def verify(self, sid: int, res: StageResult, points: np.ndarray, colors: np.ndarray | None = None
+               ) -> list[LoopResult]:
+        """Register every candidate of ``sid`` (``points``: its own frame; ``colors``: their image colours,
+        when known) and decide on each (see the
         module docstring). Returns the loops that become graph edges now, ``sid``'s and pending ones that
         found their partner; their edges are already in the graph."""
         m, g = self.map, self.map.graph
@@ -126,8 +128,11 @@ class LoopCloser:
             chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
             tile_uv = m.gallery.tile_centers_uv(keys[ib])
             pm = subsample(m.store.get(match), self.config.registration_max_points)
+            cm = m.store.get_colors(match) if colors is not None else None
+            cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
             r = register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
-                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration)
+                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
+                              colors_query=colors, colors_match=cm)
             r = dataclasses.replace(r, source=source)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
                      sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)

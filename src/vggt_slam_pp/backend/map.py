@@ -27,9 +27,9 @@ import numpy as np
 from vggt_slam_pp.backend.graph import Edge, PoseGraph
 from vggt_slam_pp.backend.places import Described, Gallery
 from vggt_slam_pp.backend.store import SubmapStore
-from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.errors import BackendError, DemError
 from vggt_slam_pp.frontend.types import OdometryEdge
-from vggt_slam_pp.geometry.lie import transform_points
+from vggt_slam_pp.geometry.lie import so3_exp, transform_points
 from vggt_slam_pp.resources import release_free_memory
 
 log = logging.getLogger(__name__)
@@ -62,13 +62,16 @@ class Map:
         self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
 
     # -- building it --------------------------------------------------------------------------------
-    def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray) -> np.ndarray:
-        """A new submap (``points`` [N,3], submap frame) enters the graph at ``T_world_prev T_prev_curr``
-        (the optimised previous pose) with its odometry edge weighted by the alignment residual; the first
-        of a segment at the identity. Returns its pose ``T_world_submap`` [4,4]."""
+    def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
+                   camera_centers: np.ndarray | None = None) -> np.ndarray:
+        """A new submap (``points`` [N,3], ``camera_centers`` [S,3], submap frame) enters the graph at
+        ``T_world_prev T_prev_curr`` (the optimised previous pose) with its odometry edge weighted by the
+        alignment residual; the first of a segment at the identity, levelled on the map's ground plane when
+        it starts a recording beside a map (:meth:`_levelled_start`). Returns its pose ``T_world_submap``."""
         sid, e = submap_id, odometry
         if e is None:
-            T, T_odo = np.eye(4), np.eye(4)
+            T = self._levelled_start(points, camera_centers) if self.graph.poses else np.eye(4)
+            T_odo = T.copy()
             self.segment[sid] = sid
             if not self.graph.poses:  # the first recording defines the map's frame; a later one (a recording
                 self.placed.add(sid)  # beside a map) is its own part of the graph until a loop places it
@@ -88,6 +91,33 @@ class Map:
                                      {"residual": e.residual, "degraded": e.degraded}))
         if len(points):
             self._remember_extent(sid, points)
+        return T
+
+    def _levelled_start(self, points: np.ndarray, camera_centers: np.ndarray | None) -> np.ndarray:
+        """The pose [4,4] of a recording's first submap beside a map: its own ground plane (fitted to its
+        points) turned onto the map's by the smallest rotation and lifted onto it; heading and position
+        stay the identity's (unknown until a loop places it). The recording's camera may be mounted at
+        another pitch or roll than the map's: without this its "up" would be the map's normal read in
+        its own frame, and every height, DEM layer and levelled registration of it would be tilted."""
+        from vggt_slam_pp.dem import fit_ground_plane
+
+        grid = self.gallery.grid
+        T = np.eye(4)
+        if grid is None or len(points) < 100:
+            return T
+        try:
+            own = fit_ground_plane(points, camera_centers)
+        except DemError:
+            return T
+        if own.degraded:
+            return T
+        n_map, n_own = grid.plane.normal, own.normal
+        axis = np.cross(n_own, n_map)
+        angle = float(np.arctan2(np.linalg.norm(axis), n_own @ n_map))
+        if np.linalg.norm(axis) > 1e-12:
+            T[:3, :3] = so3_exp(axis / np.linalg.norm(axis) * angle)
+        T[:3, 3] = n_map * float((grid.plane.origin - T[:3, :3] @ own.origin) @ n_map)
+        log.info("a recording beside the map: its ground is %.1f deg off the map's; levelled", np.degrees(angle))
         return T
 
     def seed(self, saved, localize_only: bool = False) -> None:

@@ -38,7 +38,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vggt_slam_pp.backend.search import SearchConfig, free_space_agreement, search_alignments, up_frame
+from vggt_slam_pp.backend.search import (
+    SearchConfig,
+    colour_match,
+    free_space_agreement,
+    hue_vectors,
+    search_alignments,
+    up_frame,
+)
 from vggt_slam_pp.dem.plane import GroundPlane
 from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, sim3_log, so3_exp, transform_points
 
@@ -82,6 +89,8 @@ class RegistrationConfig:
     ambiguity_ratio: float = 0.85  # a distinct alignment this close to the best (agreement x structure
     # overlap): ambiguous
     normals_k: int = 10
+    use_colour: bool = True  # structure agrees by its image colour too (when the points have colours)
+    full_saturation: float = 0.08  # chromaticity distance from grey at which a point's hue counts fully
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
     floor_rot_sigma: float = 0.1  # loop information: weak prior per ICP parameter (rad, tiles, log-scale)
     floor_trans_sigma_tiles: float = 5.0
@@ -197,20 +206,21 @@ def mutual_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return ia, ab[ia]
 
 
-def _subsample(points: np.ndarray, n: int, seed: int) -> np.ndarray:
-    if len(points) <= n:
-        return points
-    return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
+def _subsample(n_points: int, n: int, seed: int) -> np.ndarray:
+    """Indices of at most ``n`` of ``n_points`` points, drawn at random (seeded)."""
+    if n_points <= n:
+        return np.arange(n_points)
+    return np.random.default_rng(seed).choice(n_points, n, replace=False)
 
 
 def remove_isolated(points: np.ndarray, k: int = 4, factor: float = 3.0) -> np.ndarray:
-    """The points [N,3] whose distance to their ``k``-th neighbour is at most ``factor`` times the median
-    such distance: flying pixels (a wrong depth far from any surface) would otherwise stand above the
-    ground as "structure" everywhere and make any alignment look supported."""
+    """Indices of the points [N,3] whose distance to their ``k``-th neighbour is at most ``factor`` times
+    the median such distance: flying pixels (a wrong depth far from any surface) would otherwise stand
+    above the ground as "structure" everywhere and make any alignment look supported."""
     if len(points) <= k + 1:
-        return points
+        return np.arange(len(points))
     d = cKDTree(points).query(points, k + 1)[0][:, -1]
-    return points[d <= factor * max(float(np.median(d)), 1e-12)]
+    return np.nonzero(d <= factor * max(float(np.median(d)), 1e-12))[0]
 
 
 def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
@@ -319,13 +329,30 @@ class _Fit:
     centre: np.ndarray
     agreement: float
     cells: int
+    lifted: float  # the query's ground above the match's where both saw ground (match-frame units)
+
+
+def _ground_offset(src_ground: np.ndarray, dst_ground_tree: cKDTree, dst_ground_h: np.ndarray, unit: float,
+                   min_pairs: int = 20) -> float:
+    """Median height of ``src_ground`` [N,3] (levelled, the match's frame) above the match's ground points
+    (``dst_ground_tree`` over their ground coordinates, heights ``dst_ground_h``) within one tile: how far
+    an alignment lifts the query's ground off the match's (0 where fewer than ``min_pairs`` meet). Local,
+    so that sloping ground is no offset."""
+    if len(src_ground) == 0 or dst_ground_tree.n == 0:
+        return 0.0
+    d, j = dst_ground_tree.query(src_ground[:, :2], distance_upper_bound=unit)
+    near = np.isfinite(d)
+    if near.sum() < min_pairs:
+        return 0.0
+    return float(np.median(src_ground[near, 2] - dst_ground_h[j[near]]))
 
 
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
                   T_world_query: np.ndarray, T_world_match: np.ndarray, plane: GroundPlane, tile_size: float,
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
                   margin: float = np.inf, bounds: LoopBounds | None = None,
-                  config: RegistrationConfig | None = None) -> LoopResult:
+                  config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
+                  colors_match: np.ndarray | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -336,6 +363,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         chip_uv, tile_uv: [K,2] matched chip / tile centres in canonical plane coordinates (may be empty).
         margin: the candidate's vote margin over the next candidate.
         bounds: what odometry can have drifted between the two (None: the physical limits only).
+        colors_query, colors_match: [N,3], [M,3] uint8 image colours of the points (optional): structure
+            then agrees by its hue too (:func:`~vggt_slam_pp.backend.search.hue_vectors`).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -355,8 +384,15 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if c.min_vote_margin > 0 and margin < c.min_vote_margin:
         return reject(f"vote margin {margin:.3f} < {c.min_vote_margin}")
     T0 = sim3_inverse(T_world_match) @ T_world_query  # query frame -> match frame, current estimate
-    src = _subsample(remove_isolated(np.asarray(points_query, float)), c.max_points, query)
-    dst = remove_isolated(np.asarray(points_match, float))
+    points_query, points_match = np.asarray(points_query, float), np.asarray(points_match, float)
+    keep_q = remove_isolated(points_query)
+    keep_q = keep_q[_subsample(len(keep_q), c.max_points, query)]
+    keep_m = remove_isolated(points_match)
+    src, dst = points_query[keep_q], points_match[keep_m]
+    hue_src = hue_vectors(None if colors_query is None else np.asarray(colors_query)[keep_q], len(src),
+                          c.full_saturation)
+    hue_dst = hue_vectors(None if colors_match is None else np.asarray(colors_match)[keep_m], len(dst),
+                          c.full_saturation)
     guesses = {"odometry": T0}
     n_planar = 0
     if chip_uv is not None and tile_uv is not None and len(chip_uv) >= 2:
@@ -367,7 +403,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             guesses["planar"] = sim3_inverse(T_world_match) @ planar_to_world(plane, T2) @ T_world_query
     up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
-                              bounds.max_translation / float(s_m), c.search_peaks, c.search)
+                              bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst)
     for k, (G, _) in enumerate(found):
         guesses[f"search_{k + 1}"] = G
     tree = cKDTree(dst)
@@ -377,12 +413,22 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               ).mean() >= 0.5 * c.min_overlap}
     if not guesses:
         return reject(f"overlap < {0.5 * c.min_overlap:.2f} at every initial guess", planar_inliers=n_planar)
+    # the query's structure and ground as its own ground plane sees them: a wrong scale or height that
+    # lifts its ground onto the match's buildings must not turn that ground into "structure"
+    s_q = float(decompose_sim3(T_world_query)[0])
+    h_src = (src @ up_frame(up_q).T)[:, 2]
+    ground_src = float(np.percentile(h_src, c.ground_percentile))
+    own_structure = h_src > ground_src + c.structure_height_tiles * float(tile_size) / s_q
+    own_ground = h_src <= ground_src
     level = up_frame(up_m)  # the match's frame levelled: height is the last coordinate
     levelled_dst = dst @ level.T
     h_dst = levelled_dst[:, 2]
     ground = float(np.percentile(h_dst, c.ground_percentile))
     is_structure = h_dst > ground + c.structure_height_tiles * unit
+    dst_ground = h_dst <= ground
+    ground_dst_tree = cKDTree(levelled_dst[dst_ground, :2])
     struct_tree = cKDTree(dst[is_structure]) if is_structure.sum() >= c.min_structure_points else None
+    struct_hue = hue_dst[is_structure]
     radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
                   [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
     r_in = c.inlier_radius_tiles * unit
@@ -394,16 +440,22 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         d, _ = tree.query(cur, distance_upper_bound=r_in)
         inl = np.isfinite(d)
         residual = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
-        struct_src = cur[(cur @ level.T)[:, 2] > ground + c.structure_height_tiles * unit]
+        up = own_structure
+        lifted = _ground_offset(cur[own_ground] @ level.T, ground_dst_tree, levelled_dst[dst_ground, 2], unit)
         s_overlap = 0.0
-        if struct_tree is not None and len(struct_src) >= c.min_structure_points:
-            s_overlap = float(np.isfinite(struct_tree.query(struct_src, distance_upper_bound=r_in)[0]).mean())
+        if struct_tree is not None and up.sum() >= c.min_structure_points:
+            # the share of q's structure on m's structure, each point weighted by how its colour matches
+            d_s, j = struct_tree.query(cur[up], distance_upper_bound=r_in)
+            near = np.isfinite(d_s)
+            s_overlap = float(colour_match(hue_src[up][near], struct_hue[j[near]]).sum() / up.sum())
         agree, cells = free_space_agreement(cur @ level.T, levelled_dst, c.agreement_cell_tiles * unit,
-                                            ground + c.structure_height_tiles * unit)
+                                            ground + c.structure_height_tiles * unit, src_hue=hue_src,
+                                            dst_hue=hue_dst, src_structure=own_structure)
         if cells < c.min_agreement_cells:
             agree = 0.0
-        refined.append(_Fit(agree * s_overlap, s_overlap, float(inl.mean()), residual, T @ G, T, G, name, H, centre,
-                            agree, cells))
+        grounded = abs(lifted) <= c.structure_height_tiles * unit
+        refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
+                            H, centre, agree, cells, lifted))
         log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
                   query, match, name, agree, cells, s_overlap, refined[-1].overlap)
     refined.sort(key=lambda f: (-f.rank, -f.overlap))
@@ -421,6 +473,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
     if s_overlap < c.min_structure_overlap:
         return reject(f"structure overlap {s_overlap:.2f} < {c.min_structure_overlap}", **kw)
+    if abs(best.lifted) > c.structure_height_tiles * unit:
+        return reject(f"grounds disagree: the query's lies {best.lifted * s_m:.2f} above the match's", **kw)
     if agree < c.min_agreement:
         return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
     if residual > c.max_residual_tiles * unit:

@@ -54,56 +54,101 @@ def up_frame(up: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
-def cell_heights(levelled: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+def hue_vectors(colors: np.ndarray | None, n: int, full_saturation: float = 0.08, min_value: int = 24
+                ) -> np.ndarray:
+    """Each point's hue as a 2-D vector [n,2]: the direction of its chromaticity ``rgb / (r + g + b)``
+    away from grey, of length ``min(1, saturation / full_saturation)`` (saturation: the chromaticity's
+    distance from grey). Shading and texture scale the three channels alike, so the hue of a surface
+    is the same on every face and from every direction; grey, dark or unknown (``colors`` None)
+    points get 0 (no colour evidence)."""
+    if colors is None:
+        return np.zeros((n, 2))
+    rgb = np.asarray(colors, float).reshape(-1, 3)
+    total = rgb.sum(1)
+    chroma = rgb / np.maximum(total, 1e-9)[:, None] - 1.0 / 3.0
+    v = chroma @ np.array([[1.0, 1.0], [-1.0, 1.0], [0.0, -2.0]]) / np.array([np.sqrt(2.0), np.sqrt(6.0)])
+    sat = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(sat, 1e-12)[:, None] * np.minimum(1.0, sat / full_saturation)[:, None]
+    u[rgb.max(1) < min_value] = 0.0
+    return u
+
+
+def colour_match(u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """How far two hue vectors [...,2] (:func:`hue_vectors`) agree, in [0, 1]: 1 when either has no
+    colour, the cosine of the hue difference (clipped at 0) when both are saturated."""
+    v = 1.0 - np.linalg.norm(u, axis=-1) * np.linalg.norm(w, axis=-1) + np.sum(u * w, axis=-1)
+    return np.clip(v, 0.0, 1.0)
+
+
+def cell_heights(levelled: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Highest point per ``cell``-sized ground cell of a levelled cloud [N,3] (height = last coordinate):
-    (sorted cell keys [K] int64, tops [K])."""
+    (sorted cell keys [K] int64, tops [K], index of the top point [K])."""
     if len(levelled) == 0:
-        return np.zeros(0, np.int64), np.zeros(0)
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
     ij = np.floor(levelled[:, :2] / cell).astype(np.int64)
     keys = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
     order = np.lexsort((levelled[:, 2], keys))  # by key, highest last
     keys, h = keys[order], levelled[order, 2]
     last = np.r_[keys[1:] != keys[:-1], True]
-    return keys[last], h[last]
+    return keys[last], h[last], order[last]
 
 
 def free_space_agreement(src_levelled: np.ndarray, dst_levelled: np.ndarray, cell: float, above: float,
-                         max_pixels: int = 4_000_000) -> tuple[float, int]:
+                         max_pixels: int = 4_000_000, src_hue: np.ndarray | None = None,
+                         dst_hue: np.ndarray | None = None, src_structure: np.ndarray | None = None
+                         ) -> tuple[float, int]:
     """Consistency of two aligned, levelled clouds [N,3], [M,3] (height last, same frame) in
     ``cell``-sized ground cells: a cell is structure where its top is higher than ``above``. Returns
     (agreements / (agreements + conflicts), agreements + conflicts): agreements = structure cells of
     either side with structure of the other within one cell; conflicts = structure cells of either side
     that the other observed as clear ground (no structure within one cell). Different tops of the same
     building are no conflict (a near camera does not see the roof); a building where the other submap saw
-    open ground is."""
+    open ground is.
+
+    With hue vectors [N,2], [M,2] (:func:`hue_vectors`), a structure cell agrees by how well its colour
+    matches the other side's structure near it (:func:`colour_match`), and the rest of it is a conflict:
+    a building in the other submap's place but of another colour is not the same building.
+    ``src_structure`` [N] marks the source's structure as its own ground saw it (default: above ``above``)."""
     both = np.concatenate([src_levelled[:, :2], dst_levelled[:, :2]])
     lo = both.min(0) - 2 * cell
     shape = tuple(int(x) for x in np.ceil((both.max(0) - lo) / cell) + 2)
     if shape[0] * shape[1] > max_pixels:
         return 0.0, 0
     imgs = []
-    for cloud in (src_levelled, dst_levelled):
-        struct = _raster(cloud[cloud[:, 2] > above, :2], lo, cell, shape)
-        imgs.append((struct, cv2.dilate(struct, _KERNEL), _clear(_raster(cloud[:, :2], lo, cell, shape), struct)))
-    (s_s, s_near, s_clear), (d_s, d_near, d_clear) = imgs
-    agree = float((s_s * d_near).sum() + (d_s * s_near).sum())
-    conflict = float((s_s * d_clear).sum() + (d_s * s_clear).sum())
+    for cloud, hue, up in ((src_levelled, src_hue, src_structure), (dst_levelled, dst_hue, None)):
+        up = cloud[:, 2] > above if up is None else up
+        struct = _raster(cloud[up, :2], lo, cell, shape)
+        colour = _hue_raster(cloud[up, :2], hue[up] if hue is not None else None, lo, cell, shape)
+        imgs.append((struct, cv2.dilate(struct, _KERNEL), _clear(_raster(cloud[:, :2], lo, cell, shape), struct),
+                     colour, _near_hue(colour)))
+    (s_s, s_near, s_clear, s_hue, s_hue_near), (d_s, d_near, d_clear, d_hue, d_hue_near) = imgs
+    s_on = s_s * d_near * colour_match(s_hue, d_hue_near)
+    d_on = d_s * s_near * colour_match(d_hue, s_hue_near)
+    agree = float(s_on.sum() + d_on.sum())
+    conflict = float((s_s * d_clear).sum() + (d_s * s_clear).sum()
+                     + (s_s * d_near).sum() + (d_s * s_near).sum()) - agree
     total = agree + conflict
     return (agree / total if total else 0.0), int(total)
 
 
 @dataclass(frozen=True)
 class CellMap:
-    """A levelled cloud's observed cells: centres [K,2] and whether each is structure [K]."""
+    """A levelled cloud's observed cells: centres [K,2], whether each is structure [K], and the hue
+    vector of its top point [K,2] (:func:`hue_vectors`; zeros without colour)."""
 
     uv: np.ndarray
     structure: np.ndarray
+    hue: np.ndarray
 
     @classmethod
-    def of(cls, levelled: np.ndarray, cell: float, above: float) -> CellMap:
-        keys, top = cell_heights(levelled, cell)
+    def of(cls, levelled: np.ndarray, cell: float, above: float, hue: np.ndarray | None = None) -> CellMap:
+        keys, top, index = cell_heights(levelled, cell)
         ij = np.c_[keys >> 32, (keys & 0xFFFFFFFF).astype(np.int32)]  # the low word back to signed
-        return cls((ij + 0.5) * cell, top > above)
+        return cls((ij + 0.5) * cell, top > above, hue[index] if hue is not None else np.zeros((len(keys), 2)))
+
+    @property
+    def coloured(self) -> bool:
+        return bool(np.any(self.hue[self.structure] != 0))
 
 
 def _raster(uv: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
@@ -115,6 +160,33 @@ def _raster(uv: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int])
 
 
 _KERNEL = np.ones((3, 3), np.uint8)
+
+
+def _hue_raster(uv: np.ndarray, hue: np.ndarray | None, lo: np.ndarray, cell: float, shape: tuple[int, int]
+                ) -> np.ndarray:
+    """Mean hue vector per cell [H,W,2] (zeros without colour)."""
+    out = np.zeros((*shape, 2), np.float32)
+    if hue is None or len(uv) == 0:
+        return out
+    ij = np.floor((uv - lo) / cell).astype(np.int64)
+    keep = np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)
+    flat = ij[keep, 0] * shape[1] + ij[keep, 1]
+    count = np.bincount(flat, minlength=shape[0] * shape[1]).astype(np.float32)
+    for k in range(2):
+        total = np.bincount(flat, weights=hue[keep, k], minlength=shape[0] * shape[1]).astype(np.float32)
+        out[..., k] = (total / np.maximum(count, 1.0)).reshape(shape)
+    return out
+
+
+def _near_hue(hue: np.ndarray) -> np.ndarray:
+    """The mean hue vector of the coloured cells within one cell [H,W,2] (what a structure cell is
+    compared with: the other side's structure within one cell, as in the agreements)."""
+    has = (np.linalg.norm(hue, axis=-1) > 0).astype(np.float32)
+    count = cv2.boxFilter(has, -1, (3, 3), normalize=False)
+    out = np.zeros_like(hue)
+    for k in range(2):
+        out[..., k] = cv2.boxFilter(np.ascontiguousarray(hue[..., k]), -1, (3, 3), normalize=False) / np.maximum(count, 1)
+    return out
 
 
 def _clear(observed: np.ndarray, structure: np.ndarray) -> np.ndarray:
@@ -151,6 +223,11 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
     b_struct = _raster(match.uv[match.structure], m_lo, cell, m_shape)
     b_near = cv2.dilate(b_struct, _KERNEL)
     b_clear = _clear(_raster(match.uv, m_lo, cell, m_shape), b_struct)
+    coloured = query.coloured and match.coloured
+    if coloured:  # agreements weighted by 1 - |a||b| + a.b (colour_match before its clipping)
+        b_hue = _near_hue(_hue_raster(match.uv[match.structure], match.hue[match.structure], m_lo, cell, m_shape))
+        b_colour = [np.ascontiguousarray(b_hue[..., 0]), np.ascontiguousarray(b_hue[..., 1]),
+                    np.linalg.norm(b_hue, axis=-1).astype(np.float32)]
     found: list[Alignment] = []
     for s in scales:
         for yaw in yaws_deg:
@@ -172,6 +249,12 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
             score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
                      - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
                      - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
+            if coloured:
+                hue = _hue_raster(rs[query.structure], query.hue[query.structure], lo, cell, shape)
+                a_colour = [np.ascontiguousarray(hue[..., 0]), np.ascontiguousarray(hue[..., 1]),
+                            np.linalg.norm(hue, axis=-1).astype(np.float32)]
+                for sign, b_img, a_img in zip((1.0, 1.0, -1.0), b_colour, a_colour, strict=True):
+                    score += sign * cv2.matchTemplate(b_img[win], a_img, cv2.TM_CCORR)
             is_max = (score >= cv2.dilate(score, _KERNEL)) & (score > 0)
             ii, jj = np.nonzero(is_max)
             for k in np.argsort(-score[ii, jj])[: 2 * count]:
@@ -197,7 +280,8 @@ def _lift(R: np.ndarray) -> np.ndarray:
 
 def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_dst: np.ndarray, unit: float,
                       prior: np.ndarray, max_log_scale: float, max_yaw_deg: float, max_shift: float, count: int,
-                      config: SearchConfig | None = None) -> list[tuple[np.ndarray, float]]:
+                      config: SearchConfig | None = None, hue_src: np.ndarray | None = None,
+                      hue_dst: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
     """Up to ``count`` candidate similarities ``T`` [4,4] with ``T src ~ dst`` from the two clouds (each in
     its own frame; ``unit``: one tile in ``dst``'s frame), best first, each with its free-space
     agreement (module docstring).
@@ -205,7 +289,8 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     The search covers what odometry can have drifted away from ``prior`` (the current estimate's
     ``T``): yaws within ``max_yaw_deg`` (180: the full circle), scales within ``exp(+-max_log_scale)``
     and shifts that move the query's centroid by at most ``max_shift`` (``dst`` units; inf: anywhere the
-    two overlap). The result depends on ``prior`` only through these bounds.
+    two overlap). The result depends on ``prior`` only through these bounds. With the points' hue
+    vectors (:func:`hue_vectors`), structure agrees by its colour too.
     """
     c = config or SearchConfig()
     Rs, Rd = up_frame(up_src), up_frame(up_dst)
@@ -217,7 +302,7 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     gs, gd = (float(np.percentile(x[:, 2], c.ground_percentile)) for x in (cs, cd))
     h = c.structure_height_tiles * unit
     cell = c.cell_tiles * unit
-    maps = {k: (CellMap.of(cs, k, gs + h), CellMap.of(cd, k, gd + h)) for k in (cell, 2 * cell)}
+    maps = {k: (CellMap.of(cs, k, gs + h, hue_src), CellMap.of(cd, k, gd + h, hue_dst)) for k in (cell, 2 * cell)}
     if min(m.structure.sum() for m in maps[2 * cell]) < c.min_structure_cells:
         return []
     n = max(1, int(np.ceil(max_log_scale / c.scale_step)))
@@ -250,7 +335,8 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
         G = np.eye(4)
         G[:2, :2], G[:2, 3] = best.A[:, :2], best.A[:, 2]
         G[2, 2], G[2, 3] = best.scale, gd - best.scale * gs
-        agree, cells = free_space_agreement(transform_points(G, cs), cd, cell, gd + h)
+        agree, cells = free_space_agreement(transform_points(G, cs), cd, cell, gd + h, src_hue=hue_src,
+                                            dst_hue=hue_dst)
         T = _lift(Rd.T) @ G @ _lift(Rs) @ np.diag([s_p, s_p, s_p, 1.0])
         ranked.append((agree if cells >= c.min_agreement_cells else 0.0, best.score, T))
     ranked.sort(key=lambda r: (-r[0], -r[1]))

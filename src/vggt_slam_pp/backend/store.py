@@ -1,7 +1,8 @@
 """Submap point clouds on disk, loaded on demand (SPEC 3.12: bounded memory).
 
-Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``; a small
-LRU cache holds the active window. Both the front-end process (writer) and the back-end worker process
+Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``, and their
+image colours (uint8 [N,3], when known) to ``<folder>/<id>.rgb.npy``; a small LRU cache holds the
+active window's points. Both the front-end process (writer) and the back-end worker process
 (reader) open the same folder.
 """
 
@@ -25,12 +26,33 @@ class SubmapStore:
     def path(self, submap_id: int) -> Path:
         return self.folder / f"{submap_id:06d}.npy"
 
-    def put(self, submap_id: int, points: np.ndarray) -> None:
+    def colors_path(self, submap_id: int) -> Path:
+        return self.folder / f"{submap_id:06d}.rgb.npy"
+
+    def put(self, submap_id: int, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+        """Store ``points`` [N,3] and, when given, their ``colors`` [N,3] (uint8 RGB)."""
         pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        if colors is not None:
+            rgb = np.ascontiguousarray(colors, np.uint8).reshape(-1, 3)
+            if len(rgb) != len(pts):
+                raise BackendError(f"submap {submap_id}: {len(rgb)} colours for {len(pts)} points")
+            tmp = self.folder / f"{submap_id:06d}.rgb.tmp.npy"
+            np.save(tmp, rgb)
+            tmp.replace(self.colors_path(submap_id))
         tmp = self.folder / f"{submap_id:06d}.tmp.npy"
         np.save(tmp, pts)
         tmp.replace(self.path(submap_id))
         self._remember(submap_id, pts)
+
+    def get_colors(self, submap_id: int) -> np.ndarray | None:
+        """The image colours [N,3] uint8 of submap ``submap_id``'s points, or None when not stored."""
+        path = self.colors_path(submap_id)
+        if not path.is_file():
+            return None
+        try:
+            return np.load(path)
+        except (OSError, ValueError) as exc:
+            raise BackendError(f"cannot read the colours of submap {submap_id} from {self.folder}: {exc}") from exc
 
     def get(self, submap_id: int) -> np.ndarray:
         if submap_id in self._cache:

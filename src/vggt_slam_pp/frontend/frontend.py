@@ -162,7 +162,7 @@ class Frontend:
             light = dataclasses.replace(pred, points=empty, conf=[np.zeros(0, np.float32)] * pred.num_frames,
                                         pixels=[np.zeros((0, 2), np.float32)] * pred.num_frames,
                                         keys=[np.zeros(0, np.int64)] * pred.num_frames, depth=None, depth_conf=None)
-            self.submaps[k] = dataclasses.replace(sm, prediction=light)
+            self.submaps[k] = dataclasses.replace(sm, prediction=light, colors=None)
 
     def finish(self) -> FrontendResult:
         while (frames := self.assembler.flush()) is not None:  # a split may hand keyframes back
@@ -214,7 +214,8 @@ class Frontend:
         if pred.num_points() == 0:
             log.warning("submap %d: no points left after filtering", sid)
         submap = Submap(sid, np.array([f.index for f in frames]), np.array([f.timestamp for f in frames]),
-                        pred, has_overlap=bool(self.submaps), overlap=sum(1 for f in frames if f.index in in_prev))
+                        pred, has_overlap=bool(self.submaps), overlap=sum(1 for f in frames if f.index in in_prev),
+                        colors=point_colors(pred, frames))
         if prev is not None:
             t = time.perf_counter()
             edge = estimate_edge(sid - 1, prev.prediction, sid, pred, self.config.odometry)
@@ -249,6 +250,22 @@ class Frontend:
         if overlap_disagreement(prev.prediction, candidate) < before:  # NaN compares False: keep the first
             pred, frames = candidate, bridged
         return pred, frames, f"bridge with {len(extra)} more keyframes of submap {sid - 1} failed"
+
+
+def point_colors(pred: SubmapPrediction, frames: list[Frame]) -> np.ndarray:
+    """The image colour [N,3] uint8 under every point of ``pred`` (its ``points`` concatenated in order),
+    read at the point's pixel (nearest) in its keyframe's image."""
+    out = []
+    for pix, frame in zip(pred.pixels, frames, strict=True):
+        img = frame.image
+        if len(pix) == 0:
+            out.append(np.zeros((0, 3), np.uint8))
+            continue
+        xy = np.rint(np.asarray(pix, float)).astype(np.int64)
+        x = np.clip(xy[:, 0], 0, img.shape[1] - 1)
+        y = np.clip(xy[:, 1], 0, img.shape[0] - 1)
+        out.append(np.asarray(img[y, x], np.uint8).reshape(-1, 3))
+    return np.concatenate(out) if out else np.zeros((0, 3), np.uint8)
 
 
 def _split_unregistered_tail(raw: SubmapPrediction, frames: list[Frame], n_shared: int

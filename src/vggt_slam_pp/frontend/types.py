@@ -104,6 +104,7 @@ class Submap:
     prediction: SubmapPrediction
     has_overlap: bool
     overlap: int = 0  # how many leading keyframes the previous submap also holds (0 for the first)
+    colors: np.ndarray | None = None  # [N,3] uint8 image colour of every point (prediction.points in order)
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ class BackendConfig:
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
-    unplaced_candidates: int = 6  # its best covisible submaps by votes are all registered
+    unplaced_candidates: int = 10  # its best covisible submaps by votes are all registered
     placement_votes: int = 3  # a recording is placed in a map by loops from this many of its submaps that agree
     placement_log_scale: float = 0.15  # on its move within these (|log scale|, degrees, tiles at its centre)
     placement_deg: float = 10.0

@@ -12,7 +12,7 @@ from vggt_slam_pp.backend.registration import planar_ransac, register_loop
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import GroundPlane
 from vggt_slam_pp.errors import BackendError
-from vggt_slam_pp.geometry.lie import make_sim3, sim3_inverse, so3_exp
+from vggt_slam_pp.geometry.lie import make_sim3, sim3_inverse, so3_exp, transform_points
 
 
 def test_gtsam_conversion_round_trip_and_action():
@@ -213,6 +213,51 @@ def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng)
         assert free_space_agreement(wrong, world, 0.5, 0.3)[0] < 0.6
 
 
+def _painted(place: np.ndarray, seed: int) -> np.ndarray:
+    """Image colours [N,3] for ``_place``'s points: grey-brown ground, one saturated colour per box (its
+    wall points come in blocks of 400 after the ground), each point's brightness shaded at random."""
+    r = np.random.default_rng(seed)
+    n_ground = len(place) - 400 * ((len(place) - 6000) // 400)
+    albedo = np.concatenate([np.tile([[110, 100, 90]], (n_ground, 1)),
+                             np.repeat(r.uniform(40, 230, ((len(place) - n_ground) // 400, 3)), 400, axis=0)])
+    return np.clip(albedo * r.uniform(0.4, 1.0, (len(place), 1)), 0, 255).astype(np.uint8)
+
+
+def test_colour_weights_structure_agreement_and_ignores_grey(rng):
+    from vggt_slam_pp.backend.search import colour_match, free_space_agreement, hue_vectors
+
+    u = hue_vectors(np.array([[200, 40, 40], [100, 20, 20], [40, 200, 40], [90, 90, 90], [5, 0, 0]]), 5)
+    assert np.allclose(np.linalg.norm(u[:3], axis=1), 1.0) and np.allclose(u[3:], 0.0)  # grey and dark: none
+    assert colour_match(u[0], u[1]) > 0.99  # shading does not change a hue
+    assert colour_match(u[0], u[2]) < 0.01 and colour_match(u[0], u[3]) == 1.0  # grey is no evidence
+    assert np.array_equal(hue_vectors(None, 4), np.zeros((4, 2)))
+
+    world = _place(rng)
+    seen, _ = _revisit(0, (0, 0), 1.0, rng, world)
+    colours = _painted(world, 0)
+    hw, hs = hue_vectors(colours, len(world)), hue_vectors(colours, len(seen))
+    agree, cells = free_space_agreement(seen, world, 0.5, 0.3, src_hue=hs, dst_hue=hw)
+    assert agree > 0.9 and cells > 50  # the same place in the same colours: as without colour
+    repainted = hue_vectors(_painted(world, 1), len(seen))  # the same shapes, other colours
+    assert free_space_agreement(seen, world, 0.5, 0.3)[0] > 0.9
+    assert free_space_agreement(seen, world, 0.5, 0.3, src_hue=repainted, dst_hue=hw)[0] < 0.6
+
+
+def test_ground_offset_is_local_so_a_slope_is_no_offset(rng):
+    from scipy.spatial import cKDTree
+
+    from vggt_slam_pp.backend.registration import _ground_offset
+
+    xy = rng.uniform(0, 30, (4000, 2))
+    slope = np.c_[xy, 0.2 * xy[:, 0] + rng.normal(0, 0.01, len(xy))]  # ground rising 6 m over 30 m
+    tree = cKDTree(slope[:2000, :2])
+    other = slope[2000:]
+    assert abs(_ground_offset(other[other[:, 0] > 15], tree, slope[:2000, 2], 1.0)) < 0.05
+    lifted = other + [0.0, 0.0, 2.5]  # a fit that puts the query's ground on roofs
+    assert abs(_ground_offset(lifted, tree, slope[:2000, 2], 1.0) - 2.5) < 0.05
+    assert _ground_offset(lifted + [100.0, 0.0, 0.0], tree, slope[:2000, 2], 1.0) == 0.0  # no ground in common
+
+
 def test_isolated_points_are_removed_before_registration(rng):
     from vggt_slam_pp.backend.registration import remove_isolated
 
@@ -234,6 +279,12 @@ def test_submap_store_round_trip_and_bounded_cache(tmp_path, rng):
         assert np.array_equal(reader.get(i), c)
     with pytest.raises(BackendError, match="submap 99"):
         reader.get(99)
+    assert reader.get_colors(0) is None  # no colours stored: none
+    rgb = rng.integers(0, 256, (100, 3)).astype(np.uint8)
+    store.put(0, clouds[0], rgb)
+    assert np.array_equal(reader.get_colors(0), rgb)
+    with pytest.raises(BackendError, match="colours"):
+        store.put(1, clouds[1], rgb)  # 100 colours for 101 points
 
 
 @pytest.fixture(scope="module")
@@ -571,3 +622,29 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
     assert out["peak_rss_mb_all"] >= out["peak_rss_mb"] > 0 and out["false_loops"] >= 0
     assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
+
+
+def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, rng):
+    """A second recording whose camera is mounted at another pitch and height: its first submap is turned
+    and lifted so that its own ground lies on the map's ground plane (its heading stays unknown)."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    store = SubmapStore(tmp_path / "s")
+    gallery = Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0)))
+    m = Map(PoseGraph(GraphConfig()), store, gallery)
+    scene = np.r_[np.c_[rng.uniform(-15, 15, (6000, 2)), rng.normal(0, 0.01, 6000)],
+                  np.c_[rng.uniform(-3, 3, (2000, 2)), rng.uniform(0, 2.0, 2000)]]
+    store.put(0, scene)
+    assert np.array_equal(m.add_submap(0, None, scene, np.array([[0.0, 0.0, 1.6]])), np.eye(4))
+    gallery.ensure_grid(m.layer_points(0), np.array([[0.0, 0.0, 1.6]]), None)
+    tilt = make_sim3(1.0, so3_exp(np.array([np.radians(10.0), 0.0, 0.0])), np.array([0.0, 0.0, -1.0]))
+    own = (scene - [0.0, 0.0, 1.6]) @ tilt[:3, :3].T + tilt[:3, 3]  # its own frame: tilted, camera elsewhere
+    centres = (np.array([[0.0, 0.0, 0.0]]) @ tilt[:3, :3].T) + tilt[:3, 3]
+    store.put(1, own)
+    T = m.add_submap(1, None, own, centres)
+    ground = transform_points(T, own[:6000])
+    assert np.abs(ground[:, 2] - np.median(scene[:6000, 2])).max() < 0.08  # flat on the map's ground
+    assert np.allclose(T, m.odometry_poses[1]) and not m.is_placed(1)

@@ -118,6 +118,8 @@ def test_a_finished_run_is_a_map_and_damaged_maps_are_refused(sequence, tmp_path
     assert saved.submaps[0].camera_centers.shape == (len(saved.submaps[0].frames), 3)
     assert sum(e.kind == "odometry" for e in saved.edges) == report["submaps"] - 1
     assert np.array_equal(saved.store.get(2), np.load(tmp_path / "map" / "submaps" / "000002.npy"))
+    colours = saved.store.get_colors(2)  # the image colour of every point, stored beside them
+    assert colours.shape == saved.store.get(2).shape and colours.dtype == np.uint8 and np.ptp(colours) > 0
 
     def damaged(edit, message):
         bad = tmp_path / f"bad_{len(list(tmp_path.iterdir()))}"
@@ -137,6 +139,7 @@ def test_a_finished_run_is_a_map_and_damaged_maps_are_refused(sequence, tmp_path
 
     damaged(truncate, "000003.npy has 100 bytes")
     damaged(lambda f: (f / "submaps" / "000001.npy").unlink(), "000001.npy is missing")
+    damaged(lambda f: (f / "submaps" / "000001.rgb.npy").unlink(), "000001.rgb.npy is missing")
     damaged(other_version, "format version 99")
     damaged(lambda f: (f / "map.json").write_text("{}"), "not a vggt-slam-pp map manifest")
     damaged(lambda f: (f / "map.json").unlink(), "not a map: no map.json")
@@ -186,6 +189,7 @@ def test_a_second_recording_is_placed_in_the_map_and_extends_it(mapped, tmp_path
     assert contents() == before  # the map is untouched, its points and DEM included
     extended = load_map(tmp_path / "more")
     assert len(extended.submaps) == first["submaps"] + report["submaps"]
+    assert extended.store.get_colors(0) is not None  # the map's colours came along
     # the second recording comes out in the map's frame: the map's own alignment to the ground truth fits it
     gt = source.frame_ground_truth()[1]
     T = compute_ate(gt, read_tum(root / "map" / "keyframes.txt"), "sim3").T_ref_est

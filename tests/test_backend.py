@@ -648,3 +648,35 @@ def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, r
     ground = transform_points(T, own[:6000])
     assert np.abs(ground[:, 2] - np.median(scene[:6000, 2])).max() < 0.08  # flat on the map's ground
     assert np.allclose(T, m.odometry_poses[1]) and not m.is_placed(1)
+
+
+def test_map_outputs_memory_does_not_grow_with_the_map(tmp_path, rng):
+    """Writing map.ply and the DEM holds one submap (and one chunk of the PLY) at a time: four times the
+    submaps (40k points each) raise the traced peak by far less than their points would take."""
+    import tracemalloc
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.outputs import OutputConfig, _write_map
+
+    store = SubmapStore(tmp_path / "s", cache_size=0)
+    poses = {}
+    for i in range(120):
+        pts = np.c_[rng.uniform(0, 20, (40_000, 2)), rng.uniform(0, 0.1, 40_000)].astype(np.float32)
+        pts[::10, 2] += 3.0  # some structure
+        store.put(i, pts)
+        poses[i] = make_sim3(1.0, np.eye(3), np.array([15.0 * i, 0.0, 0.0]))
+
+    def peak(n: int) -> int:
+        backend = SimpleNamespace(plane=GroundPlane(np.zeros(3), np.eye(3)).to_dict(), mpp=1.0, tile_size=2.0,
+                                  poses={i: poses[i] for i in range(n)})
+        out = tmp_path / f"out{n}"
+        out.mkdir()
+        tracemalloc.start()
+        _write_map(out, backend, store, OutputConfig(ply_points_per_submap=40_000))
+        top = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert (out / "map.ply").stat().st_size > n * 40_000 * 15  # every point is in it
+        return top
+
+    small, large = peak(30), peak(120)  # both past one PLY chunk (1M points)
+    assert large - small < 0.25 * 90 * 40_000 * 24, (small / 1e6, large / 1e6)  # 90 more submaps: 86 MB as float64

@@ -358,7 +358,7 @@ def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: Ou
             n += len(sel)
             can = plane.to_canonical(sel)
             lo, hi = np.minimum(lo, can[:, :2].min(0)), np.maximum(hi, can[:, :2].max(0))
-            sample.append(can[:: max(1, len(can) // _HEIGHT_SAMPLE), 2])
+            sample.append(can[:: max(1, len(can) // _HEIGHT_SAMPLE), 2].copy())  # a view would keep `can`
     try:
         h_lo, h_hi = np.percentile(np.concatenate(sample), [1, 99])
         _write_ply(out / "map.ply", body, n, plane, float(h_lo), float(h_hi))

@@ -338,11 +338,14 @@ class _BackendFeeder:
         self.memory_trace: list[tuple[int, float]] = []
         self.trace_every = 10
         self.max_lag = 0  # most submaps the back-end was behind the front-end at a hand-over
-        # keyframes.txt is rewritten (all keyframes) at most this often: every snapshot made long runs
-        # quadratic (316 submaps: 30 s of the front-end's time); flush() writes the newest at the end
+        # keyframes.txt is rewritten (all keyframes) at most this often, and never more than 2 % of the
+        # time: every snapshot made long runs quadratic (316 submaps: 30 s of the front-end's time), and
+        # at 1,000 submaps one rewrite takes a tenth of a second; flush() writes the newest at the end
         self.write_interval_s = 2.0
+        self.write_share = 0.02
         self._latest = None
         self._last_write = -np.inf
+        self._write_s = 0.0  # how long the last rewrite took
 
     def feed(self) -> None:
         if self.worker is None:
@@ -363,7 +366,7 @@ class _BackendFeeder:
         self._latest = snap or self._latest
         done = snap.last_submap + 1 - self.frontend.first_id if snap is not None else 0
         self.max_lag = max(self.max_lag, self.sent - max(done, 0))
-        if time.perf_counter() - self._last_write >= self.write_interval_s:
+        if time.perf_counter() - self._last_write >= max(self.write_interval_s, self._write_s / self.write_share):
             self._write_latest()
         if self.sent // self.trace_every > len(self.memory_trace):
             self.memory_trace.append((self.sent, rss_mb()))
@@ -372,9 +375,11 @@ class _BackendFeeder:
     def _write_latest(self) -> None:
         snap = self._latest
         if snap is not None and (snap.version, snap.last_submap) != self._written:
+            t = time.perf_counter()
             write_keyframes_snapshot(self.out, self.frontend.submaps, snap.poses)
             self._written = (snap.version, snap.last_submap)
             self._last_write = time.perf_counter()
+            self._write_s = self._last_write - t
 
     def flush(self) -> None:
         """``keyframes.txt`` at the newest snapshot now (a failed or interrupted run)."""

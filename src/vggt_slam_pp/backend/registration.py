@@ -19,7 +19,10 @@ have drifted; nothing else.
    ``overlap`` (share of q's points with a neighbour in m within the inlier radius),
    ``structure_overlap`` (the same for points above the ground: flat ground aligns anywhere),
    ``agreement`` (:func:`~vggt_slam_pp.backend.search.free_space_agreement`: no building where the
-   other submap saw open ground), the RMS ``residual``, the bounds (scale, yaw and shift of the
+   other submap saw open ground), both weighted by colour when the points have it (structure agrees as
+   far as its hue matches), the query's ground on the match's (the query's structure and ground are
+   classified in its own frame; a fit that lifts its ground off the match's is refused), the RMS
+   ``residual``, the bounds (scale, yaw and shift of the
    correction), and no distinct alignment nearly as good (``ambiguity_ratio``: repetitive structure).
    A rejected candidate keeps its reason. The back-end then asks for a cycle-consistent second loop
    or a correction within one sigma of the drift model before the loop enters the graph

@@ -17,7 +17,8 @@ frames:
    tolerance), conflicts = query structure on the match's clear ground plus match structure on the
    query's clear ground. Free space is evidence: a wrong place or a shrunken query puts buildings where
    the other submap saw open ground, so the score does not favour small scales as an occupancy
-   correlation does.
+   correlation does. With the points' image colours, a structure agreement counts as far as the two
+   cells' hues agree (:func:`hue_vectors`, :func:`colour_match`): every face of an object has its hue.
 4. The best alignments are refined at half the cell and ranked again by :func:`free_space_agreement`
    in 3-D (heights scale with the query: a shrunken query's buildings fall under the structure height),
    and ICP refines the survivors (:mod:`vggt_slam_pp.backend.registration`).

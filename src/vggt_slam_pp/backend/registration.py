@@ -371,7 +371,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
-    _, R_q, _ = decompose_sim3(T_world_query)
+    s_q, R_q, _ = decompose_sim3(T_world_query)
     unit = float(tile_size) / float(s_m)  # one tile in the match's frame
     bounds = bounds or LoopBounds(c.max_scale_change, np.inf)
     max_log_scale = min(bounds.max_log_scale, c.max_scale_change)
@@ -418,11 +418,11 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"overlap < {0.5 * c.min_overlap:.2f} at every initial guess", planar_inliers=n_planar)
     # the query's structure and ground as its own ground plane sees them: a wrong scale or height that
     # lifts its ground onto the match's buildings must not turn that ground into "structure"
-    s_q = float(decompose_sim3(T_world_query)[0])
     h_src = (src @ up_frame(up_q).T)[:, 2]
     ground_src = float(np.percentile(h_src, c.ground_percentile))
-    own_structure = h_src > ground_src + c.structure_height_tiles * float(tile_size) / s_q
+    own_structure = h_src > ground_src + c.structure_height_tiles * float(tile_size) / float(s_q)
     own_ground = h_src <= ground_src
+    own_structure_hue, n_own_structure = hue_src[own_structure], int(own_structure.sum())
     level = up_frame(up_m)  # the match's frame levelled: height is the last coordinate
     levelled_dst = dst @ level.T
     h_dst = levelled_dst[:, 2]
@@ -443,14 +443,13 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         d, _ = tree.query(cur, distance_upper_bound=r_in)
         inl = np.isfinite(d)
         residual = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
-        up = own_structure
         lifted = _ground_offset(cur[own_ground] @ level.T, ground_dst_tree, levelled_dst[dst_ground, 2], unit)
         s_overlap = 0.0
-        if struct_tree is not None and up.sum() >= c.min_structure_points:
+        if struct_tree is not None and n_own_structure >= c.min_structure_points:
             # the share of q's structure on m's structure, each point weighted by how its colour matches
-            d_s, j = struct_tree.query(cur[up], distance_upper_bound=r_in)
+            d_s, j = struct_tree.query(cur[own_structure], distance_upper_bound=r_in)
             near = np.isfinite(d_s)
-            s_overlap = float(colour_match(hue_src[up][near], struct_hue[j[near]]).sum() / up.sum())
+            s_overlap = float(colour_match(own_structure_hue[near], struct_hue[j[near]]).sum() / n_own_structure)
         agree, cells = free_space_agreement(cur @ level.T, levelled_dst, c.agreement_cell_tiles * unit,
                                             ground + c.structure_height_tiles * unit, src_hue=hue_src,
                                             dst_hue=hue_dst, src_structure=own_structure)

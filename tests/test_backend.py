@@ -680,3 +680,31 @@ def test_map_outputs_memory_does_not_grow_with_the_map(tmp_path, rng):
 
     small, large = peak(30), peak(120)  # both past one PLY chunk (1M points)
     assert large - small < 0.25 * 90 * 40_000 * 24, (small / 1e6, large / 1e6)  # 90 more submaps: 86 MB as float64
+
+
+def test_a_map_extended_by_a_recording_stays_in_its_frame(tmp_path, rng):
+    """A global solve holds only the first submap, so a new recording's loops can shift, turn and scale
+    the seeded map as a whole; ``Map.keep_prior_frame`` takes it back onto its saved poses by the
+    least-squares similarity, applied to every submap, so relative poses are unchanged."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"),
+            Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0))))
+    saved = {i: make_sim3(1.0, so3_exp(np.array([0.0, 0.0, 0.1 * i])), np.array([10.0 * i, 2.0 * i, 0.0]))
+             for i in range(5)}
+    drift = make_sim3(1.03, so3_exp(np.array([0.01, -0.02, 0.05])), np.array([0.4, -0.3, 0.2]))
+    for i in range(6):  # five saved submaps and one of the new recording
+        m.graph.add_node(i, drift @ (saved[i] if i < 5 else saved[4] @ saved[1]))
+        m._remember_extent(i, rng.normal([5.0, 0.0, -1.5], 2.0, (200, 3)))
+    assert np.allclose(m.keep_prior_frame(), np.eye(4))  # not a seeded map: nothing moves
+    m.prior_poses = {i: saved[i].copy() for i in range(5)}
+    before = {i: T.copy() for i, T in m.graph.poses.items()}
+    G = m.keep_prior_frame()
+    assert np.allclose(G, sim3_inverse(drift), atol=1e-9)
+    for i in range(5):
+        assert np.allclose(m.graph.poses[i], saved[i], atol=1e-9)
+    for i in range(5):  # the solution's shape is kept
+        assert np.allclose(sim3_inverse(m.graph.poses[i]) @ m.graph.poses[5], sim3_inverse(before[i]) @ before[5])

@@ -190,6 +190,10 @@ def test_a_second_recording_is_placed_in_the_map_and_extends_it(mapped, tmp_path
     extended = load_map(tmp_path / "more")
     assert len(extended.submaps) == first["submaps"] + report["submaps"]
     assert extended.store.get_colors(0) is not None  # the map's colours came along
+    # re-solved with the new loops, the map keeps its frame: on average its submaps stay where they were
+    saved = load_map(root / "map").submaps
+    shift = np.mean([e.T_world_submap[:3, 3] - s.T_world_submap[:3, 3] for e, s in zip(extended.submaps[:len(saved)], saved, strict=True)], 0)
+    assert np.linalg.norm(shift) < 0.02, shift
     # the second recording comes out in the map's frame: the map's own alignment to the ground truth fits it
     gt = source.frame_ground_truth()[1]
     T = compute_ate(gt, read_tum(root / "map" / "keyframes.txt"), "sim3").T_ref_est

@@ -141,6 +141,54 @@ def _gt_footprints(source, submap_frames: list, tile: float = 2.0) -> list[set]:
     return footprints
 
 
+def _nodes_ate(source, nodes: list[dict]) -> float:
+    """ATE (m, Sim(3)-aligned) of the keyframe centres that ``graph.json`` nodes hold (``T_world_submap``
+    applied to their ``camera_centers``; a keyframe shared by two submaps counted once) against the
+    source's ground truth."""
+    from vggt_slam_pp.geometry.alignment import umeyama
+    from vggt_slam_pp.geometry.lie import transform_points
+
+    idx, gt = source.frame_ground_truth()
+    truth = dict(zip(idx.tolist(), gt.poses[:, :3, 3], strict=True))
+    est = {}
+    for n in nodes:
+        world = transform_points(np.asarray(n["T_world_submap"]), np.asarray(n["camera_centers"]))
+        for f, c in zip(n["frames"], world, strict=True):
+            if int(f) in truth:
+                est.setdefault(int(f), c)
+    keys = sorted(est)
+    a, b = np.array([est[k] for k in keys]), np.array([truth[k] for k in keys])
+    T = umeyama(a, b, with_scale=True)
+    return float(np.sqrt(np.mean(np.sum((transform_points(T, a) - b) ** 2, axis=1))))
+
+
+def _wrong_loops(graph: dict, n_map: int, first, second, max_deg: float = 5.0, max_m: float = 5.0) -> list:
+    """Accepted loops between a recording (submaps ``>= n_map``, frames of ``second``) and its map (frames
+    of ``first``) whose relative pose is off the two submaps' ground-truth relative pose by more than
+    ``max_deg`` or ``max_m`` at the query's first camera: ``[(query, match, degrees, metres)]``."""
+    from vggt_slam_pp.backend.registration import correction_size
+    from vggt_slam_pp.geometry.lie import sim3_inverse
+
+    truth = []
+    for source in (first, second):
+        idx, gt = source.frame_ground_truth()
+        truth.append(dict(zip(idx.tolist(), gt.poses, strict=True)))
+    nodes = {n["id"]: n for n in graph["nodes"]}
+
+    def pose(i: int) -> np.ndarray:
+        return truth[i >= n_map][int(nodes[i]["frames"][0])]
+
+    wrong = []
+    for e in graph["edges"]:
+        m, q = e["from"], e["to"]
+        if e["kind"] != "loop" or not q >= n_map > m:
+            continue
+        _, deg, metres = correction_size(pose(m) @ np.asarray(e["T"]) @ sim3_inverse(pose(q)), pose(q)[:3, 3])
+        if deg > max_deg or metres > max_m:
+            wrong.append((q, m, round(deg, 2), round(metres, 2)))
+    return wrong
+
+
 def _overlap_matrix(footprints: list[set]) -> np.ndarray:
     """Symmetric share of common cells, relative to the smaller footprint."""
     n = len(footprints)
@@ -435,7 +483,10 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
     accepted loops between the second pass and the map whose two submaps' ground-truth footprints share
     less than ``overlap_threshold``; ``ate_map``: the map's keyframe ATE (Sim(3)-aligned to the first
     pass's ground truth); ``ate_second_pass_map_frame``: the second pass's keyframes (placed submaps) in
-    the map's frame against its ground truth under that same alignment, without re-aligning.
+    the map's frame against its ground truth under that same alignment, without re-aligning;
+    ``ate_map_extended``: the map's own keyframes in the extended map (adding a recording re-solves them);
+    ``wrong_loops_across``: accepted loops between the two passes off their ground-truth relative pose by
+    more than 5 deg or 5 m (a loop on a partial overlap can be right and still count as a false placement).
     """
     import json
 
@@ -483,6 +534,8 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
            "false_pairs": false, "ate_map": map_ate.rmse, "ate_second_pass_map_frame": None,
            "ate_second_pass_odometry": report.get("ate_rmse_odometry"),
            "targets": {"placed_fraction": 0.9, "false_placements": 0, "ate_ratio": 2.0}}
+    out["ate_map_extended"] = _nodes_ate(first, nodes[:n_map])
+    out["wrong_loops_across"] = _wrong_loops(graph, n_map, first, second)
     if keep.any():
         from vggt_slam_pp.eval.metrics import associate
 

@@ -208,6 +208,8 @@ class Backend:
         """Solve the graph (over ``window``, or globally) and (``refresh``) describe moved layers again."""
         t0 = time.perf_counter()
         moved = set(self.map.graph.optimize(window))
+        if window is None and self.map.prior_poses:  # a map extended by a recording stays in its frame
+            self.map.keep_prior_frame()
         self.timings["optimization_s"] += time.perf_counter() - t0
         self._version += 1
         if refresh:

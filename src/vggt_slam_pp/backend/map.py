@@ -27,7 +27,7 @@ import numpy as np
 from vggt_slam_pp.backend.graph import Edge, PoseGraph
 from vggt_slam_pp.backend.places import Described, Gallery
 from vggt_slam_pp.backend.store import SubmapStore
-from vggt_slam_pp.errors import BackendError, DemError
+from vggt_slam_pp.errors import BackendError, DemError, GeometryError
 from vggt_slam_pp.frontend.types import OdometryEdge
 from vggt_slam_pp.geometry.lie import so3_exp, transform_points
 from vggt_slam_pp.resources import release_free_memory
@@ -60,6 +60,7 @@ class Map:
         self._layer_pose: dict[int, np.ndarray] = {}  # pose each gallery layer was rasterised with
         self._stale: set[int] = set()  # layers that moved enough but wait for a refresh with budget left
         self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
+        self.prior_poses: dict[int, np.ndarray] = {}  # a seeded map's submaps at their saved poses (its frame)
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
@@ -151,8 +152,36 @@ class Map:
         if localize_only:  # the map's submaps are held where they are; new ones do not join the gallery
             self.graph.anchors |= set(self.graph.poses)
             self.index_new = False
+        else:
+            self.prior_poses = {i: T.copy() for i, T in self.graph.poses.items()}
         log.info("map seeded: %d submaps, %d edges%s", len(saved.submaps), len(saved.edges),
                  " (localisation only)" if localize_only else "")
+
+    def keep_prior_frame(self) -> np.ndarray:
+        """After a global solve of a map that a recording extends: the similarity [4,4] that takes the
+        seeded submaps back as close as they can come to their saved poses (least squares over their camera
+        centres and point centroids), applied to every pose. The solve holds only the first submap, so
+        loops from the new recording may shift and turn the saved map as a whole by a few tenths of a
+        metre; its frame is the map's frame, in which the new trajectory must come out. Relative poses
+        and the solution's shape are unchanged. Returns the similarity (the identity without a seeded map)."""
+        from vggt_slam_pp.geometry.alignment import umeyama
+
+        ids = [i for i in self.prior_poses if i in self.graph.poses]
+        if len(ids) < 2:
+            return np.eye(4)
+        local = [np.zeros(3)]
+        src, dst = [], []
+        for i in ids:
+            pts = np.array(local + ([self._centroid[i]] if i in self._centroid else []))
+            src.append(transform_points(self.graph.poses[i], pts))
+            dst.append(transform_points(self.prior_poses[i], pts))
+        try:
+            G = umeyama(np.concatenate(src), np.concatenate(dst), with_scale=True)
+        except GeometryError:
+            return np.eye(4)
+        for i, T in self.graph.poses.items():
+            self.graph.poses[i] = G @ T
+        return G
 
     def index_layer(self, submap_id: int, described: Described) -> None:
         """Add a submap's described layer (at its current pose) to the gallery."""

@@ -6,8 +6,10 @@
 * ``keyframes_odometry.txt`` / ``.kitti``, ``frames_odometry.txt`` / ``.kitti``: the odometry trajectory
   (TUM with timestamps, 12-column KITTI; every input frame, non-keyframes interpolated in time);
 * ``frames.csv``: ``index,timestamp,keyframe,interpolated,disparity_px,tracked,reason`` per frame;
+* ``groundtruth.txt``: the input's ground truth at its frames (TUM), when it has one;
 * ``report.json``: counts, per-stage timings, throughput, peak memory, odometry edges and, with ground
   truth, ``ate_rmse_odometry`` (Sim(3)-aligned, keyframes);
+* ``report.html``: the same for people, figures embedded (:mod:`vggt_slam_pp.viz.report`);
 * ``map.json`` last, when the run finished with the back-end (:mod:`vggt_slam_pp.backend.mapfile`).
 
 With the back-end (:func:`write_backend_outputs`):
@@ -59,6 +61,7 @@ class OutputConfig:
     ply_points_per_submap: int = 20_000  # map.ply: at most this many points of each submap
     map_voxel: float = 0.0  # map.ply: one point per cube of this size (world units) in each submap; 0: all
     dem_max_side_px: int = 4096  # exported DEM: coarser (an integer multiple of the back-end's mpp) beyond this
+    html_report: bool = True  # report.html (figures, loops, timings, configuration) at the end of the run
 
 
 @dataclass
@@ -102,6 +105,9 @@ def write_run_outputs(out: Path, source, config, result: FrontendResult | None, 
                          "backend_finish_wait_s": stats.backend_finish_wait_s}
     if result is not None:
         _write_odometry(out, result)
+    gt_pair = source.frame_ground_truth()
+    if gt_pair is not None:  # the input's ground truth at its frames: the report and the viewer draw it
+        write_tum(out / "groundtruth.txt", gt_pair[1])
     if result is not None and backend is not None:
         report.update(write_backend_outputs(out, source, result, backend, SubmapStore(out / "submaps", 0),
                                             config.outputs, prior=prior))
@@ -126,6 +132,13 @@ def write_run_outputs(out: Path, source, config, result: FrontendResult | None, 
     report["peak_rss_mb"] = peak_rss_mb() + backend_peak
     report["peak_rss_mb_backend"] = backend_peak
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
+    if config.outputs.html_report:
+        from vggt_slam_pp.viz.report import write_report
+
+        try:
+            write_report(out)
+        except Exception as exc:  # noqa: BLE001 - the report is for people: it must never lose a run's outputs
+            log.warning("report.html not written: %s", exc)
     if stats.error is None and backend is not None and write_map:
         first = len(prior.submaps) if prior is not None else 0
         write_manifest(out, first + len(result.submaps))  # last: the folder is now a complete map

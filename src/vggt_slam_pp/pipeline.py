@@ -133,7 +133,8 @@ def make_backbone(config: RunConfig, source: FrameSource) -> Backbone:
 
 def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: Backbone | None = None,
         progress: Callable[[int, int], None] | None = None, resume: bool = False,
-        prior_map: str | Path | None = None, localize_only: bool = False, input_record: dict | None = None) -> dict:
+        prior_map: str | Path | None = None, localize_only: bool = False, input_record: dict | None = None,
+        viewer=None) -> dict:
     """Run on ``source`` and write the outputs into ``out_dir``; returns the report dictionary.
 
     ``resume``: ``out_dir`` holds an interrupted run of the same input and configuration; the backbone
@@ -149,6 +150,8 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
     (docs/backend.md, "Maps").
 
     ``input_record``: how the input was given (the CLI's flags), written to ``input.json`` for ``--resume``.
+    ``viewer``: a :class:`~vggt_slam_pp.viz.live.LiveViewer` fed with every finished submap and pose
+    snapshot (``run --viewer``).
     """
     from threadpoolctl import threadpool_limits
 
@@ -156,12 +159,13 @@ def run(source: FrameSource, config: RunConfig, out_dir: str | Path, backbone: B
         raise InputError(f"blas_threads must be >= 0 (0: the library default), got {config.blas_threads}")
     limit = threadpool_limits(config.blas_threads, user_api="blas") if config.blas_threads else nullcontext()
     with limit:
-        return _run(source, config, Path(out_dir), backbone, progress, resume, prior_map, localize_only, input_record)
+        return _run(source, config, Path(out_dir), backbone, progress, resume, prior_map, localize_only, input_record,
+                    viewer)
 
 
 def _run(source: FrameSource, config: RunConfig, out: Path, backbone: Backbone | None,
          progress: Callable[[int, int], None] | None, resume: bool, prior_map: str | Path | None,
-         localize_only: bool, input_record: dict | None) -> dict:
+         localize_only: bool, input_record: dict | None, viewer=None) -> dict:
     from vggt_slam_pp.frontend.backbones.replay import PredictionStore
 
     prior = _open_prior_map(prior_map, out, config) if prior_map is not None else None
@@ -171,7 +175,7 @@ def _run(source: FrameSource, config: RunConfig, out: Path, backbone: Backbone |
     t0 = time.perf_counter()
     backbone = backbone or make_backbone(config, source)
     prepare_run_folder(out, config, input_record, keep_predictions=resume)
-    system = SlamSystem(config, out, backbone, resume=resume, prior=prior, localize_only=localize_only)
+    system = SlamSystem(config, out, backbone, resume=resume, prior=prior, localize_only=localize_only, viewer=viewer)
     n = len(source)
     error: BaseException | None = None
     t_read = 0.0
@@ -224,7 +228,7 @@ class SlamSystem:
     """
 
     def __init__(self, config: RunConfig, out: Path, backbone: Backbone, resume: bool = False, prior=None,
-                 localize_only: bool = False) -> None:
+                 localize_only: bool = False, viewer=None) -> None:
         from vggt_slam_pp.frontend.backbones.replay import PredictionStore, ResumeBackbone
 
         self.config, self.out = config, Path(out)
@@ -239,7 +243,10 @@ class SlamSystem:
             self.worker = BackendWorker(_scale_aware(config.backend_config, backbone), self.out / "submaps",
                                         worker=config.worker, start_timeout_s=300.0 + 5.0 * first_id,
                                         prior_map=(str(prior.folder), localize_only) if prior is not None else None)
-        self.feeder = _BackendFeeder(self.frontend, self.worker, self.out)
+        self.feeder = _BackendFeeder(self.frontend, self.worker, self.out, viewer)
+        self.viewer = viewer  # a LiveViewer (run --viewer): finished submaps and pose snapshots go to it
+        self._shown = 0
+        self._odometry_pose = np.eye(4)
         self._undistort = config.calibrated and self.backbone.name != "colmap"  # colmap models distortion itself
         self.frontend_s: float | None = None  # wall time of the frame loop (set by finish)
         self.finish_wait_s = 0.0  # time finish() waited for the back-end's last submaps and global solve
@@ -253,11 +260,27 @@ class SlamSystem:
             frame = _undistorted(frame)
             self.undistort_s += time.perf_counter() - t
         if self.frontend.process(frame) is not None:
+            self._show()
             self.feeder.feed()
+
+    def _show(self) -> None:
+        """Hand the submaps finished since the last call to the live viewer (before the feeder releases
+        their points), at their odometry poses."""
+        if self.viewer is None:
+            return
+        subs = self.frontend.submaps
+        while self._shown < len(subs):
+            sm = subs[self._shown]
+            if self._shown > 0:
+                self._odometry_pose = self._odometry_pose @ self.frontend.edges[self._shown - 1].T_prev_curr
+            pts, colors, centres = _points_and_cameras(sm)
+            self.viewer.submap(sm.id, pts, colors, centres, sm.frame_indices, self._odometry_pose)
+            self._shown += 1
 
     def finish(self) -> SlamResult:
         """The last submap, then the back-end's final global optimisation."""
         result = self.frontend.finish()
+        self._show()
         self.feeder.feed()
         self.frontend_s = time.perf_counter() - self._t_start
         backend_result = None
@@ -265,6 +288,8 @@ class SlamSystem:
             t = time.perf_counter()
             backend_result = self.worker.finish()
             self.finish_wait_s = time.perf_counter() - t
+            if self.viewer is not None:
+                self.viewer.poses(backend_result.poses)
         return SlamResult(result, backend_result)
 
     def partial_result(self) -> SlamResult:
@@ -324,13 +349,22 @@ def _scale_aware(config: BackendConfig, backbone: Backbone) -> BackendConfig:
     return dataclasses.replace(config, covisibility=covis)
 
 
+def _points_and_cameras(sm) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """A finished submap's points [N,3], their colours [N,3] uint8 (None when unknown) and its keyframes'
+    camera centres [S,3], all in the submap's frame."""
+    pred = sm.prediction
+    pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
+    colors = sm.colors if sm.colors is not None and len(sm.colors) == len(pts) else None
+    return pts, colors, np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+
+
 class _BackendFeeder:
     """Sends every finished submap to the back-end worker (points to the on-disk store first), releases
     the front-end's copy of the points it no longer needs (bounded memory), and keeps ``keyframes.txt``
     at the newest pose snapshot, so an interrupted run leaves its latest consistent trajectory."""
 
-    def __init__(self, frontend: Frontend, worker: BackendWorker | None, out: Path) -> None:
-        self.frontend, self.worker, self.out = frontend, worker, out
+    def __init__(self, frontend: Frontend, worker: BackendWorker | None, out: Path, viewer=None) -> None:
+        self.frontend, self.worker, self.out, self.viewer = frontend, worker, out, viewer
         self.sent = 0
         self.seconds = 0.0
         self._written = (-1, -1)
@@ -353,17 +387,16 @@ class _BackendFeeder:
         t = time.perf_counter()
         while self.sent < len(self.frontend.submaps):
             sm = self.frontend.submaps[self.sent]
-            pred = sm.prediction
-            pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
-            colors = sm.colors if sm.colors is not None and len(sm.colors) == len(pts) else None
+            pts, colors, centres = _points_and_cameras(sm)
             self.worker.store.put(sm.id, pts, colors)
-            centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
             edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
             self.worker.submit(SubmapMessage(sm.id, centres, edge))
             self.sent += 1
         self.frontend.release_points(keep_last=1)
         snap = self.worker.latest()
         self._latest = snap or self._latest
+        if snap is not None and self.viewer is not None:
+            self.viewer.poses(snap.poses)
         done = snap.last_submap + 1 - self.frontend.first_id if snap is not None else 0
         self.max_lag = max(self.max_lag, self.sent - max(done, 0))
         if time.perf_counter() - self._last_write >= max(self.write_interval_s, self._write_s / self.write_share):

@@ -10,6 +10,7 @@ import argparse
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +114,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     config = dataclasses.replace(config, backbone=dataclasses.replace(config.backbone, seed=args.seed, noise=args.noise))
     print(f"synthetic block loop: {len(source)} frames -> {seq_dir}; running VGGT-SLAM++ (simulated backbone, "
           "hog encoder, offline)")
-    report = run(source, config, out / "run", progress=_progress(len(source), "frames"))
+    report = run(source, config, out / "run", progress=_progress(len(source), "frames"),
+                 input_record={**_INPUT_FLAGS, "input": str(seq_dir)})  # the viewer's thumbnails, --resume
     _print_summary(report, out / "run")
     return 0
 
@@ -161,7 +163,7 @@ _RUN_FLAGS = {
     "overlap": ("frontend.overlap", None), "calibrated": ("calibrated", None),
     "no_save_predictions": ("save_predictions", lambda v: not v), "no_backend": ("backend", lambda v: not v),
     "encoder": ("backend_config.encoder", None), "encoder_weights": ("backend_config.encoder_weights", None),
-    "map_voxel": ("outputs.map_voxel", None),
+    "map_voxel": ("outputs.map_voxel", None), "no_report": ("outputs.html_report", lambda v: not v),
 }
 
 
@@ -224,11 +226,27 @@ def cmd_run(args: argparse.Namespace) -> int:
                            map=str(args.map.resolve()) if args.map else None)
         config, out = run_config_from_args(args), args.out
     source = _open_input(given_input)
-    report = run(source, config, out, progress=_progress(len(source), "frames", disable=args.quiet),
-                 resume=bool(args.resume), prior_map=given_input.get("map"),
-                 localize_only=bool(given_input.get("localize_only")),
-                 input_record=None if args.resume else given_input)
-    _print_summary(report, out)
+    viewer = None
+    if args.viewer:
+        from vggt_slam_pp.viz.live import LiveViewer
+
+        viewer = LiveViewer(port=args.port)
+        print(f"live viewer: {viewer.url}", file=sys.stderr)
+    try:
+        report = run(source, config, out, progress=_progress(len(source), "frames", disable=args.quiet),
+                     resume=bool(args.resume), prior_map=given_input.get("map"),
+                     localize_only=bool(given_input.get("localize_only")),
+                     input_record=None if args.resume else given_input, viewer=viewer)
+        _print_summary(report, out)
+        if viewer is not None:
+            viewer.close(keep_serving=True)
+            print(f"the live viewer still serves {viewer.url} (Ctrl-C to stop; `vggt-slam-pp view {out}` shows "
+                  "the finished run with its DEM and loop candidates)")
+            while viewer.alive():
+                time.sleep(0.5)
+    finally:
+        if viewer is not None:
+            viewer.close()
     return 0
 
 
@@ -274,7 +292,30 @@ def _print_summary(report: dict, out) -> None:
     if "loops_accepted" in report:
         files = ("keyframes.txt/.kitti, frames.txt/.kitti (corrected), " + files +
                  ", graph.json, map.ply, dem/, trajectory.png")
+    if (Path(out) / "report.html").is_file():
+        files += ", report.html"
     print(f"outputs: {out}/ ({files})")
+    print(f"see it: open {out}/report.html, or `vggt-slam-pp view {out}` for the 3-D viewer")
+
+
+# ------------------------------------------------------------------ report / view
+def cmd_report(args: argparse.Namespace) -> int:
+    from vggt_slam_pp.viz.report import write_report
+
+    print(f"report: {write_report(args.run_dir, args.out)}")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from vggt_slam_pp.viz.viewer import serve
+
+    viewer = serve(args.run_dir, host=args.host, port=args.port, max_points=args.max_points)
+    print(f"viewer: http://localhost:{viewer.port}/ (Ctrl-C to stop)")
+    try:
+        viewer.wait()
+    finally:
+        viewer.stop()
+    return 0
 
 
 # ------------------------------------------------------------------ bench
@@ -323,7 +364,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"second pass {'the other way' if r['reverse'] else 'the same way'}: {r['second_pass_submaps']} submaps, "
             f"placed {r['placed_fraction']:.2f} (target >= 0.9), false placements {r['false_placements']} (target 0), "
             f"ATE in the map's frame {_metres(r['ate_second_pass_map_frame'])} (map {_metres(r['ate_map'])}; target "
-            "<= 2x)" for r in rows)
+            f"<= 2x); the map's own ATE once extended {_metres(r['ate_map_extended'])}" for r in rows)
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
                                          seed=args.seed)
@@ -415,6 +456,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated backbone's noise: default, realistic (monocular drift, 1-3 %% of the path) or zero")
     d.set_defaults(func=cmd_demo)
 
+    rp = sub.add_parser("report", help="write a run's self-contained HTML report (figures, loops, timings)")
+    rp.add_argument("run_dir", type=Path, help="a run's output folder")
+    rp.add_argument("--out", type=Path, help="HTML file (default: RUN_DIR/report.html)")
+    rp.set_defaults(func=cmd_report)
+
+    v = sub.add_parser("view", help="3-D web viewer of a run or a map (viser; needs the viz extra)")
+    v.add_argument("run_dir", type=Path, help="a run's output folder")
+    v.add_argument("--port", type=int, default=8080, help="port on localhost (default 8080)")
+    v.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    v.add_argument("--max-points", type=int, default=300_000,
+                   help="points shown in all, spread over the submaps (default 300000)")
+    v.set_defaults(func=cmd_view)
+
     e = sub.add_parser("eval", help="ATE / RPE of an estimated trajectory against ground truth")
     e.add_argument("--gt", required=True, type=Path, help="ground-truth trajectory file")
     e.add_argument("--est", required=True, type=Path, help="estimated trajectory file")
@@ -481,6 +535,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--encoder", choices=list(ENCODERS),
                    help="DEM encoder for covisibility (default hog: weight-free)")
     r.add_argument("--encoder-weights", default=None, help="dinov2: weights file or hub name")
+    r.add_argument("--no-report", action="store_true", default=None, help="do not write report.html")
+    r.add_argument("--viewer", action="store_true",
+                   help="show the run live in a 3-D web viewer (viser; needs the viz extra); it keeps serving "
+                        "after the run until Ctrl-C")
+    r.add_argument("--port", type=int, default=8080, help="the live viewer's port (default 8080)")
     r.add_argument("--map-voxel", type=float, metavar="METRES",
                    help="map.ply: keep one point per cube of this size in each submap (default: off)")
     r.add_argument("--layout", default="auto", help="input layout (default: detected)")

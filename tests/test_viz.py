@@ -82,6 +82,10 @@ def test_viewer_builds_the_scene_of_a_run(finished_run):
         shown = [sid for sid, sm in v.submaps.items() if sm.handles[0].visible]
         assert shown == [0]
         v._set_upto(max(v.submaps))
+        assert "submap_1" in v.gui  # a toggle per submap
+        v._set_hidden(1, True)
+        assert [sid for sid, sm in v.submaps.items() if not sm.handles[0].visible] == [1]
+        v._set_hidden(1, False)
         v._toggle("map", False)
         assert not any(sm.handles[0].visible for sm in v.submaps.values())
     finally:

@@ -89,6 +89,7 @@ class RunViewer:
         self.colour_mode = "image"
         self.visible_upto = None  # the time slider: submaps with id <= this are shown
         self.visible_range = (0, 10**9)
+        self.hidden: set[int] = set()  # submaps switched off one by one
         # what is shown; rejected candidates (often many) only on request
         self._layers = {"map": True, "cameras": True, "trajectories": True, "loops": True, "rejected": False,
                         "dem": True}
@@ -124,6 +125,8 @@ class RunViewer:
                 self._remove(old)
             self.submaps[submap_id] = sm
             self._draw_submap(submap_id, sm, camera_rotations)
+        if "submaps" in self.gui:
+            self._submap_toggle(submap_id)
         if "time" in self.gui:  # a live run: the sliders grow with it (and follow it when at their end)
             last, t, r = max(self.submaps), self.gui["time"], self.gui["range"]
             follow = t.value >= t.max
@@ -155,7 +158,7 @@ class RunViewer:
 
     def _shown(self, sid: int) -> bool:
         lo, hi = self.visible_range
-        return lo <= sid <= hi and (self.visible_upto is None or sid <= self.visible_upto)
+        return lo <= sid <= hi and (self.visible_upto is None or sid <= self.visible_upto) and sid not in self.hidden
 
     def set_trajectory(self, name: str, positions_world: np.ndarray, colour=None) -> None:
         """A path [N,3] (world frame) as line segments ``/trajectory/NAME``."""
@@ -225,6 +228,9 @@ class RunViewer:
             r = gui.add_multi_slider("submap range", min=0, max=max(last, 1), step=1, initial_value=(0, max(last, 1)))
             r.on_update(lambda _e: self._set_range(tuple(int(x) for x in r.value)))
             self.gui.update(time=t, range=r)
+        self.gui["submaps"] = gui.add_folder("Submaps", expand_by_default=False)
+        for sid in ids:
+            self._submap_toggle(sid)
         with gui.add_folder("Loop candidates"):
             labels = [f"{c['query']} -> {c['match']}: {'accepted' if c.get('accepted') else 'rejected'}"
                       for c in self.loop_candidates] or ["(none)"]
@@ -234,6 +240,23 @@ class RunViewer:
             pick.on_update(lambda _e: self._show_candidate(
                 self.loop_candidates[labels.index(pick.value)]) if self.loop_candidates else None)
             self.gui["candidate"] = pick
+
+    def _submap_toggle(self, sid: int) -> None:
+        """A checkbox for one submap in the GUI's "Submaps" folder."""
+        key = f"submap_{sid}"
+        if key in self.gui:
+            return
+        with self.gui["submaps"]:
+            cb = self.server.gui.add_checkbox(f"submap {sid}", initial_value=sid not in self.hidden)
+        cb.on_update(lambda _e: self._set_hidden(sid, not cb.value))
+        self.gui[key] = cb
+
+    def _set_hidden(self, sid: int, hidden: bool) -> None:
+        if hidden:
+            self.hidden.add(sid)
+        else:
+            self.hidden.discard(sid)
+        self._refresh_visibility()
 
     @staticmethod
     def _describe(c: dict) -> str:

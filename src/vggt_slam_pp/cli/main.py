@@ -298,6 +298,27 @@ def _print_summary(report: dict, out) -> None:
     print(f"see it: open {out}/report.html, or `vggt-slam-pp view {out}` for the 3-D viewer")
 
 
+# ------------------------------------------------------------------ evaluate
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from vggt_slam_pp.suite import load_suite, run_suite, write_plots, write_tables
+
+    suite = load_suite(args.suite)  # every check before anything runs
+    out = args.out or Path("runs") / f"suite_{suite.name}"
+
+    def progress(r: dict, done: int, total: int) -> None:
+        what = f"ATE {r['ate']:.4f}" if r.get("error") is None and r.get("ate") is not None else \
+            (f"FAILED: {r['error']}" if r.get("error") else "no ATE (no ground truth)")
+        print(f"[{done}/{total}] {r['config']} {r['dataset']}/{r['sequence']} seed {r['seed']}: {what}", file=sys.stderr)
+
+    results = run_suite(suite, out, runs=args.runs, jobs=args.jobs, ray=args.ray, progress=progress)
+    paths = write_tables(results, out)
+    write_plots(results, out)
+    print(paths["md"].read_text(), end="")
+    failed = sum(r.get("error") is not None for r in results)
+    print(f"{len(results)} runs ({failed} failed); tables {out}/table.{{md,csv,tex}}, plots {out}/plots/")
+    return 0
+
+
 # ------------------------------------------------------------------ report / view
 def cmd_report(args: argparse.Namespace) -> int:
     from vggt_slam_pp.viz.report import write_report
@@ -455,6 +476,16 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--noise", choices=NOISE_PROFILES, default="default",
                    help="simulated backbone's noise: default, realistic (monocular drift, 1-3 %% of the path) or zero")
     d.set_defaults(func=cmd_demo)
+
+    ev = sub.add_parser("evaluate", help="run an evaluation suite (datasets x configurations x seeds) and "
+                                         "write its tables (Markdown, CSV, LaTeX) and plots")
+    ev.add_argument("suite", type=Path, help="suite file (YAML; see benchmarks/suites/)")
+    ev.add_argument("--out", type=Path, help="output folder (default runs/suite_NAME); finished runs in it are kept")
+    ev.add_argument("--runs", type=int, help="runs per (sequence, configuration), seeds 0..N-1 (default: the suite's)")
+    ev.add_argument("--jobs", type=int, default=1, help="runs at a time in local processes (default 1)")
+    ev.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                    help="run on Ray: a local instance, or the cluster at ADDRESS (needs the ray extra)")
+    ev.set_defaults(func=cmd_evaluate)
 
     rp = sub.add_parser("report", help="write a run's self-contained HTML report (figures, loops, timings)")
     rp.add_argument("run_dir", type=Path, help="a run's output folder")

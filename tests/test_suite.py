@@ -118,3 +118,36 @@ def test_the_example_suites_are_valid(tmp_path):
         pytest.skip("../shared/data is not present")
     tasks = expand(load_suite(files["offline.yaml"]), tmp_path)
     assert len({(t.dataset, t.sequence) for t in tasks}) >= 3
+
+
+def test_sequences_are_found_in_dataset_roots(tmp_path):
+    """A folder of sequences (TUM-like sub-folders, Virtual KITTI 2-like nesting, a KITTI odometry root)
+    gives each of them; an unknown name fails and lists those present."""
+    from vggt_slam_pp.errors import InputError
+    from vggt_slam_pp.suite.spec import DatasetSpec, SuiteSpec, sequences_of
+
+    root = tmp_path / "root"
+    for name in ("fr1_desk", "fr2_xyz"):
+        (root / name).mkdir(parents=True)
+        (root / name / "rgb.txt").write_text("# timestamp filename\n")
+    (root / "Scene01" / "clone").mkdir(parents=True)
+    (root / "Scene01" / "clone" / "rgb.txt").write_text("")
+    (root / "notes").mkdir()
+    kitti = tmp_path / "dataset" / "sequences"
+    for name in ("00", "07"):
+        (kitti / name / "image_2").mkdir(parents=True)
+    suite = SuiteSpec("s", tmp_path / "s.yaml", 1, (), ())
+    assert [n for n, _ in sequences_of(DatasetSpec("tum", root, None), suite)] == ["Scene01/clone", "fr1_desk", "fr2_xyz"]
+    assert [n for n, _ in sequences_of(DatasetSpec("kitti", tmp_path / "dataset", ("07",)), suite)] == ["07"]
+    with pytest.raises(InputError, match="no sequence 05 .* has 00, 07"):
+        sequences_of(DatasetSpec("kitti", tmp_path / "dataset", ("05",)), suite)
+
+
+def test_ray_is_not_imported_without_ray(tiny, tmp_path):
+    import subprocess
+    import sys
+
+    code = (f"import sys\nfrom vggt_slam_pp.suite import load_suite, run_suite\n"
+            f"run_suite(load_suite({str(tiny)!r}), {str(tmp_path / 'out')!r}, runs=1, jobs=1)\n"
+            "assert 'ray' not in sys.modules, 'ray was imported'\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)

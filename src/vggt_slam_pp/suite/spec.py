@@ -209,8 +209,8 @@ def load_suite(path: str | Path) -> SuiteSpec:
 
 def sequences_of(d: DatasetSpec, suite: SuiteSpec, data_dir: Path | None = None) -> list[tuple[str, Path]]:
     """(name, folder) of every sequence the dataset names. A root that is itself a sequence is one
-    sequence; a KITTI odometry root gives ``sequences/NN``; another folder gives its sub-folders that are
-    sequences of a known layout."""
+    sequence; a KITTI odometry root gives ``sequences/NN``; another folder gives its sub-folders (or their
+    sub-folders, named ``a/b``) that are sequences of a known layout."""
     from vggt_slam_pp.io.datasets import _is_kitti_sequence, detect_layout
 
     if d.synthetic is not None:
@@ -222,16 +222,24 @@ def sequences_of(d: DatasetSpec, suite: SuiteSpec, data_dir: Path | None = None)
         found = [(root.name, root)]
     except InputError:
         seq_dir = root / "sequences" if (root / "sequences").is_dir() else root
-        found = []
-        for sub in sorted(p for p in seq_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
-            if _is_kitti_sequence(sub):
-                found.append((sub.name, sub))
-                continue
+
+        def is_sequence(folder: Path) -> bool:
+            if _is_kitti_sequence(folder):
+                return True
             try:
-                if detect_layout(sub) != "images":
-                    found.append((sub.name, sub))
+                return detect_layout(folder) != "images"
             except InputError:
-                continue
+                return False
+
+        def subdirs(folder: Path) -> list[Path]:
+            return sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+        found = []
+        for sub in subdirs(seq_dir):
+            if is_sequence(sub):
+                found.append((sub.name, sub))
+            else:  # one level deeper: Virtual KITTI 2's SceneNN/variation, 7-Scenes' scene/seq-NN
+                found += [(f"{sub.name}/{s.name}", s) for s in subdirs(sub) if is_sequence(s)]
     if not found:
         raise _fail(suite.path, f"dataset {d.name!r}: no sequence of a known layout in {root}")
     if d.sequences is None:

@@ -34,7 +34,11 @@ def finished_result(task: Task) -> dict | None:
         r = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return r if r.get("error") is None else None
+    if r.get("error") is not None:
+        return None
+    # the task names the run (its folder may have been moved or renamed since)
+    return {**r, "dataset": task.dataset, "sequence": task.sequence, "config": task.config, "seed": task.seed,
+            "folder": task.folder}
 
 
 def run_task(task: Task) -> dict:

@@ -209,7 +209,7 @@ def load_suite(path: str | Path) -> SuiteSpec:
 
 def sequences_of(d: DatasetSpec, suite: SuiteSpec, data_dir: Path | None = None) -> list[tuple[str, Path]]:
     """(name, folder) of every sequence the dataset names. A root that is itself a sequence is one
-    sequence; a KITTI odometry root gives ``sequences/NN``; another folder gives its sub-folders (or their
+    sequence, named as the dataset; a KITTI odometry root gives ``sequences/NN``; another folder gives its sub-folders (or their
     sub-folders, named ``a/b``) that are sequences of a known layout."""
     from vggt_slam_pp.io.datasets import _is_kitti_sequence, detect_layout
 
@@ -219,7 +219,7 @@ def sequences_of(d: DatasetSpec, suite: SuiteSpec, data_dir: Path | None = None)
     root = d.root
     try:
         detect_layout(root) if d.layout == "auto" else None
-        found = [(root.name, root)]
+        found = [(d.name, root)]  # a root that is one sequence: named as the dataset
     except InputError:
         seq_dir = root / "sequences" if (root / "sequences").is_dir() else root
 

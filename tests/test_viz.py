@@ -76,6 +76,14 @@ def test_viewer_builds_the_scene_of_a_run(finished_run):
         rejected = [c for c in run.loop_candidates if not c["accepted"]]
         assert rejected and f"/loops/rejected/{rejected[0]['query']:06d}_{rejected[0]['match']:06d}" in names
         v = serving.viewer
+        from vggt_slam_pp.dem import GroundPlane
+        from vggt_slam_pp.viz.viewer import _wxyz
+
+        rot, R_ground = run.keyframe_rotations(), GroundPlane.from_dict(run.graph["plane"]).R
+        for n in run.nodes[:3]:  # every frustum faces as its own keyframe
+            for k, f in enumerate(n["frames"]):
+                q = np.asarray(v.nodes[f"/cameras/submap_{n['id']:06d}/kf_{k:03d}"].wxyz)
+                assert abs(float(q @ _wxyz(R_ground @ rot[f]))) > 1 - 1e-6
         v._show_candidate(rejected[0])  # what a click on the candidate shows
         assert rejected[0]["reason"] in v.gui["candidate_text"].content
         v._set_upto(0)  # the time slider: only the first submap is left

@@ -51,6 +51,24 @@ class RunFolder:
     def loop_edges(self) -> list[dict]:
         return [e for e in (self.graph or {}).get("edges", []) if e.get("kind") == "loop"]
 
+    def keyframe_rotations(self) -> dict[int, np.ndarray]:
+        """Frame index -> ``R_world_cam`` [3,3] of every keyframe (corrected when there is a corrected
+        trajectory), matched through ``frames.csv``'s timestamps; {} without ``frames.csv``."""
+        import csv
+
+        path = self.folder / "frames.csv"
+        if not path.is_file():
+            return {}
+        traj = self.corrected or self.odometry
+        by_time = {round(float(t), 6): T[:3, :3] for t, T in zip(traj.timestamps, traj.poses, strict=True)}
+        out = {}
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                R = by_time.get(round(float(row["timestamp"]), 6))
+                if R is not None:
+                    out[int(row["index"])] = R / np.cbrt(np.linalg.det(R))  # a similarity's scale divided out
+        return out
+
     def submap_points(self, submap_id: int) -> tuple[np.ndarray, np.ndarray | None] | None:
         """A submap's points ``[N, 3]`` (its own frame) and colours ``[N, 3]`` uint8 (or None), from the
         run's submap store; None when the run kept none."""

@@ -67,6 +67,7 @@ class _Submap:
     camera_centers: np.ndarray  # [S,3] submap frame
     frames: list[int]
     T_world_submap: np.ndarray
+    camera_rotations: np.ndarray | None = None  # [S,3,3] R_world_cam at T_world_submap
     handles: list = field(default_factory=list)
 
 
@@ -114,17 +115,19 @@ class RunViewer:
                    frames: list[int], T_world_submap: np.ndarray, camera_rotations: np.ndarray | None = None,
                    max_points: int = 20_000) -> None:
         """Add (or replace) a submap: ``points`` [N,3] and ``colors`` [N,3] uint8 in its own frame,
-        ``camera_centers`` [S,3] (and optionally ``camera_rotations`` [S,3,3] ``R_submap_cam``)."""
+        ``camera_centers`` [S,3] and optionally its keyframes' ``camera_rotations`` [S,3,3] ``R_world_cam``
+        (without them every frustum of the submap faces as its first keyframe)."""
         n = len(points)
         keep = np.linspace(0, n - 1, min(n, max_points)).astype(np.int64) if n else np.zeros(0, np.int64)
         sm = _Submap(np.asarray(points[keep], np.float32), None if colors is None else np.asarray(colors[keep], np.uint8),
-                     np.asarray(camera_centers, float), list(frames), np.asarray(T_world_submap, float))
+                     np.asarray(camera_centers, float), list(frames), np.asarray(T_world_submap, float),
+                     None if camera_rotations is None else np.asarray(camera_rotations, float))
         with self._lock:
             old = self.submaps.get(submap_id)
             if old is not None:
                 self._remove(old)
             self.submaps[submap_id] = sm
-            self._draw_submap(submap_id, sm, camera_rotations)
+            self._draw_submap(submap_id, sm)
         if "submaps" in self.gui:
             self._submap_toggle(submap_id)
         if "time" in self.gui:  # a live run: the sliders grow with it (and follow it when at their end)
@@ -136,7 +139,7 @@ class RunViewer:
             if r.value[1] >= last - 1:
                 r.value = (r.value[0], last)
 
-    def _draw_submap(self, sid: int, sm: _Submap, camera_rotations: np.ndarray | None) -> None:
+    def _draw_submap(self, sid: int, sm: _Submap) -> None:
         scene = self.server.scene
         world = transform_points(sm.T_world_submap, sm.points.astype(np.float64))
         ground = self.to_ground(world)
@@ -149,7 +152,7 @@ class RunViewer:
         _, R, _ = decompose_sim3(sm.T_world_submap)
         centres = self.to_ground(transform_points(sm.T_world_submap, sm.camera_centers))
         for k, (c, f) in enumerate(zip(centres, sm.frames, strict=False)):
-            R_cam = self._ground_rotation() @ R @ (camera_rotations[k] if camera_rotations is not None else np.eye(3))
+            R_cam = self._ground_rotation() @ (sm.camera_rotations[k] if sm.camera_rotations is not None else R)
             image = self.thumbnails(f) if self.thumbnails is not None else None
             h = scene.add_camera_frustum(f"/cameras/submap_{sid:06d}/kf_{k:03d}", fov=np.radians(60.0), aspect=4 / 3,
                                          scale=self.frustum_scale, color=(90, 90, 200), image=image,
@@ -315,9 +318,13 @@ class RunViewer:
                 sm = self.submaps.get(sid)
                 if sm is None or np.allclose(sm.T_world_submap, T, atol=1e-4):
                     continue
+                if sm.camera_rotations is not None:  # turned with the submap
+                    _, R_old, _ = decompose_sim3(sm.T_world_submap)
+                    _, R_new, _ = decompose_sim3(np.asarray(T, float))
+                    sm.camera_rotations = (R_new @ R_old.T) @ sm.camera_rotations
                 sm.T_world_submap = np.asarray(T, float)
                 self._remove(sm)
-                self._draw_submap(sid, sm, None)
+                self._draw_submap(sid, sm)
 
     def _remove(self, sm: _Submap) -> None:
         for h in sm.handles:
@@ -385,12 +392,15 @@ def build_scene(server, run: RunFolder, max_points: int = 300_000) -> RunViewer:
     viewer.point_size = max(0.002 * extent, 1e-3)
     nodes = run.nodes
     per = max(1000, max_points // max(len(nodes), 1))
+    rotations = run.keyframe_rotations()
     for n in nodes:
         got = run.submap_points(n["id"])
         pts, rgb = got if got is not None else (np.zeros((0, 3), np.float32), None)
+        frames = n.get("frames", [])
+        rot = np.array([rotations[f] for f in frames]) if frames and all(f in rotations for f in frames) else None
         viewer.add_submap(n["id"], np.asarray(pts), None if rgb is None else np.asarray(rgb),
-                          np.asarray(n.get("camera_centers", np.zeros((0, 3)))), n.get("frames", []),
-                          np.asarray(n["T_world_submap"]), max_points=per)
+                          np.asarray(n.get("camera_centers", np.zeros((0, 3)))), frames,
+                          np.asarray(n["T_world_submap"]), camera_rotations=rot, max_points=per)
     if not nodes:
         log.warning("%s has no graph.json (a run without the back-end): trajectories only", run.folder)
     viewer.set_trajectory("odometry", run.odometry.positions)

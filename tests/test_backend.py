@@ -708,3 +708,46 @@ def test_a_map_extended_by_a_recording_stays_in_its_frame(tmp_path, rng):
         assert np.allclose(m.graph.poses[i], saved[i], atol=1e-9)
     for i in range(5):  # the solution's shape is kept
         assert np.allclose(sim3_inverse(m.graph.poses[i]) @ m.graph.poses[5], sim3_inverse(before[i]) @ before[5])
+
+
+def test_a_large_map_also_gets_its_dem_in_full_resolution_tiles(tmp_path, rng):
+    """Past ``dem_max_side_px`` the DEM overview is coarser; ``dem/tiles/`` then holds the full resolution
+    one tile at a time, and the tiles put together equal the whole DEM fused in one go."""
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.dem import DemGrid, rasterize
+    from vggt_slam_pp.dem.raster import fuse_layers
+    from vggt_slam_pp.outputs import OutputConfig, _write_map
+
+    store = SubmapStore(tmp_path / "s", cache_size=0)
+    poses = {}
+    for i in range(6):
+        pts = np.c_[rng.uniform(0, 12, (3000, 2)), rng.uniform(0, 0.1, 3000)].astype(np.float32)
+        pts[::7, 2] += rng.uniform(1, 3)
+        store.put(i, pts)
+        poses[i] = make_sim3(1.0, so3_exp(np.array([0.0, 0.0, 0.3 * i])), np.array([9.0 * i, 2.0 * (i % 2), 0.0]))
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    backend = SimpleNamespace(plane=plane.to_dict(), mpp=0.25, tile_size=2.0, poses=poses)
+    out = tmp_path / "out"
+    out.mkdir()
+    _write_map(out, backend, store, OutputConfig(dem_max_side_px=100, dem_tile_px=64))
+    index = json.loads((out / "dem" / "tiles" / "index.json").read_text())
+    assert index["mpp"] == 0.25 and index["tile_px"] == 64 and len(index["tiles"]) >= 4
+    grid = DemGrid(plane, 0.25, 8)
+    whole, (wu, wv) = fuse_layers((lay.origin_px, lay.heights) for lay in
+                                  (rasterize(transform_points(poses[i], store.get(i)), grid, i) for i in range(6)))
+    assembled = np.full_like(whole, np.nan)
+    for t in index["tiles"]:
+        with np.load(out / "dem" / "tiles" / f"{t['name']}.npz") as d:
+            h = d["heights"]
+        u0, v0 = t["origin_px"]
+        a_u, a_v = max(u0, wu), max(v0, wv)
+        b_u, b_v = min(u0 + h.shape[1], wu + whole.shape[1]), min(v0 + h.shape[0], wv + whole.shape[0])
+        part = h[a_v - v0:b_v - v0, a_u - u0:b_u - u0]
+        assert np.isnan(h).sum() - np.isnan(part).sum() == h.size - part.size  # nothing outside the map
+        assembled[a_v - wv:b_v - wv, a_u - wu:b_u - wu] = part
+        assert (out / "dem" / "tiles" / f"{t['name']}_color.png").is_file()
+    assert np.array_equal(np.isnan(assembled), np.isnan(whole))
+    assert np.allclose(assembled[np.isfinite(whole)], whole[np.isfinite(whole)])
+    with np.load(out / "dem" / "dem.npz") as d:  # the overview stayed coarser
+        assert float(d["mpp"]) > 0.25 and max(d["heights"].shape) <= 100

@@ -21,7 +21,8 @@ With the back-end (:func:`write_backend_outputs`):
 * ``map.ply``: the fused point cloud (each submap in its final pose, optionally one point per
   ``map_voxel`` cube, at most ``ply_points_per_submap`` points), coloured by height above the ground
   plane (yellow ground to dark green, as the DEM), written one submap at a time;
-* ``dem/``: the fused DEM (colour and grayscale PNG, ``.npz`` with heights, mpp, plane, origin);
+* ``dem/``: the fused DEM (colour and grayscale PNG, ``.npz`` with heights, mpp, plane, origin), coarser
+  past ``dem_max_side_px``, and then also ``dem/tiles/`` at the back-end's full resolution;
 * ``trajectory.png``: odometry, corrected and (when known) ground truth, seen from above.
 
 :func:`write_backend_outputs` returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected`` (of which
@@ -62,6 +63,8 @@ class OutputConfig:
     map_voxel: float = 0.0  # map.ply: one point per cube of this size (world units) in each submap; 0: all
     dem_max_side_px: int = 4096  # exported DEM: coarser (an integer multiple of the back-end's mpp) beyond this
     html_report: bool = True  # report.html (figures, loops, timings, configuration) at the end of the run
+    dem_tiles: bool = True  # a map beyond dem_max_side_px: also dem/tiles/ at the back-end's full resolution
+    dem_tile_px: int = 2048  # side of those tiles (rounded to whole DEM tiles)
 
 
 @dataclass
@@ -362,8 +365,12 @@ def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: Ou
         return
     body = out / "map.ply.points.tmp"
     n, lo, hi, sample = 0, np.full(2, np.inf), np.full(2, -np.inf), []
+    boxes: dict[int, np.ndarray] = {}  # each submap's canonical (u, v) extent: min, max [2, 2]
     with open(body, "wb") as f:
         for sid in ids:
+            full = plane.to_canonical(transform_points(backend.poses[sid], store.get(sid)))[:, :2]
+            boxes[sid] = np.stack([full.min(0), full.max(0)])
+            del full
             sel = submap_cloud(store.get(sid), backend.poses[sid], config.ply_points_per_submap, config.map_voxel)
             if not len(sel):
                 continue
@@ -391,6 +398,53 @@ def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: Ou
 
     fused, origin = fuse_layers(layers())
     export_dem(out / "dem", fused, grid.mpp, plane, origin)
+    del fused
+    if factor > 1 and config.dem_tiles:
+        _write_dem_tiles(out / "dem" / "tiles", backend, store, ids, plane, boxes, config)
+
+
+def _write_dem_tiles(folder: Path, backend: BackendResult, store: SubmapStore, ids: list[int], plane: GroundPlane,
+                     boxes: dict[int, np.ndarray], config: OutputConfig) -> None:
+    """The fused DEM at the back-end's resolution, cut into square tiles of about ``dem_tile_px`` pixels
+    (``tile_IV_IU.npz`` with ``_color.png`` beside it, as ``export_dem`` writes; ``index.json`` lists
+    them with their origin pixels). One tile is in memory at a time, fused from the submaps whose extent
+    touches it (each rasterised again for every tile it touches: one or a few)."""
+    tile_px = int(round(backend.tile_size / backend.mpp))
+    grid = DemGrid(plane, backend.mpp, tile_px)
+    side = max(1, round(config.dem_tile_px / tile_px)) * tile_px
+    # a layer's pixel box, as rasterize pads it: whole DEM tiles from the one holding its lowest pixel
+    px = {sid: np.floor(b / grid.mpp).astype(np.int64) for sid, b in boxes.items()}
+    lo_px = {sid: (p[0] // tile_px) * tile_px for sid, p in px.items()}
+    hi_px = {sid: p[1] + 1 for sid, p in px.items()}
+    start = np.min([lo_px[s] for s in ids], axis=0)
+    end = np.max([hi_px[s] for s in ids], axis=0)
+    folder.mkdir(parents=True, exist_ok=True)
+    index = []
+    for v0 in range(int(start[1]), int(end[1]), side):
+        for u0 in range(int(start[0]), int(end[0]), side):
+            touching = [s for s in ids if lo_px[s][0] < u0 + side and hi_px[s][0] > u0
+                        and lo_px[s][1] < v0 + side and hi_px[s][1] > v0]
+            if not touching:
+                continue
+            canvas = np.full((side, side), -np.inf, np.float32)
+            for sid in touching:
+                layer = rasterize(transform_points(backend.poses[sid], store.get(sid)), grid, sid)
+                (lu, lv), (rows, cols) = layer.origin_px, layer.heights.shape
+                a_u, a_v = max(lu, u0), max(lv, v0)
+                b_u, b_v = min(lu + cols, u0 + side), min(lv + rows, v0 + side)
+                if a_u >= b_u or a_v >= b_v:
+                    continue
+                view = canvas[a_v - v0:b_v - v0, a_u - u0:b_u - u0]
+                np.fmax(view, layer.heights[a_v - lv:b_v - lv, a_u - lu:b_u - lu], out=view)
+            if not np.isfinite(canvas).any():
+                continue
+            canvas[~np.isfinite(canvas)] = np.nan
+            name = f"tile_{(v0 - int(start[1])) // side:03d}_{(u0 - int(start[0])) // side:03d}"
+            export_dem(folder, canvas, grid.mpp, plane, (u0, v0), name=name)
+            index.append({"name": name, "origin_px": [u0, v0], "shape": [side, side]})
+    atomic_write_text(folder / "index.json", json.dumps({"mpp": grid.mpp, "tile_px": side,
+                                                         "plane": plane.to_dict(), "tiles": index}, indent=1))
+    log.info("DEM tiles at %.3f m/px: %d of %d px a side in %s", grid.mpp, len(index), side, folder)
 
 
 def _write_ply(path: Path, points_file: Path, n: int, plane: GroundPlane, h_lo: float, h_hi: float) -> None:

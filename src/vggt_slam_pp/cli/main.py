@@ -242,8 +242,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             viewer.close(keep_serving=True)
             print(f"the live viewer still serves {viewer.url} (Ctrl-C to stop; `vggt-slam-pp view {out}` shows "
                   "the finished run with its DEM and loop candidates)")
-            while viewer.alive():
-                time.sleep(0.5)
+            try:
+                while viewer.alive():
+                    time.sleep(0.5)
+            except KeyboardInterrupt:  # the way to stop it: the run itself has finished
+                print("viewer stopped", file=sys.stderr)
     finally:
         if viewer is not None:
             viewer.close()
@@ -334,6 +337,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     print(f"viewer: http://localhost:{viewer.port}/ (Ctrl-C to stop)")
     try:
         viewer.wait()
+    except KeyboardInterrupt:  # the way to stop it
+        print("viewer stopped", file=sys.stderr)
     finally:
         viewer.stop()
     return 0

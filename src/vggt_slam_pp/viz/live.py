@@ -28,6 +28,9 @@ __all__ = ["LiveViewer"]
 
 def _serve(port: int, host: str, inbox, ready) -> None:
     """The viewer process: a viser server drawing what arrives in ``inbox`` until ``None``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's; the viewer stops when told (or orphaned)
     try:
         from vggt_slam_pp.backend.worker import _lower_priority
 

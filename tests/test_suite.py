@@ -33,6 +33,11 @@ def tiny(tmp_path_factory):
     return folder / "tiny.yaml"
 
 
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
 def _ates(results: list[dict]) -> dict:
     return {(r["config"], r["sequence"], r["seed"]): r["ate"] for r in results}
 
@@ -52,6 +57,12 @@ def test_a_suite_runs_once_then_repeats_nothing(tiny, tmp_path, monkeypatch):
     again = run_suite(suite, out)
     assert _ates(again) == _ates(first)
     assert {p: p.stat().st_mtime_ns for p in out.rglob("result.json")} == stamps
+    changed = load_suite(_write(tiny.parent / "changed.yaml", TINY.replace("submap_size: 4", "submap_size: 5")))
+    from vggt_slam_pp.suite import expand
+    from vggt_slam_pp.suite.runner import finished_result
+
+    done = {t.config: finished_result(t) is not None for t in expand(changed, out)}
+    assert done == {"odometry": True, "small_submaps": False}  # other settings under the same name run again
     paths = write_tables(again, out)
     md = paths["md"].read_text()
     assert "| odometry |" in md and "| small_submaps |" in md and "average" in md and "±" in md
@@ -59,6 +70,7 @@ def test_a_suite_runs_once_then_repeats_nothing(tiny, tmp_path, monkeypatch):
 
 
 def test_results_are_equal_with_one_or_two_jobs_and_on_a_local_ray_instance(tiny, tmp_path):
+    pytest.importorskip("ray")  # in the test extra; skipped only where Ray has no wheel
     suite = load_suite(tiny)
     one = _ates(run_suite(suite, tmp_path / "one", runs=1, jobs=1))
     two = _ates(run_suite(suite, tmp_path / "two", runs=1, jobs=2))
@@ -151,3 +163,12 @@ def test_ray_is_not_imported_without_ray(tiny, tmp_path):
             f"run_suite(load_suite({str(tiny)!r}), {str(tmp_path / 'out')!r}, runs=1, jobs=1)\n"
             "assert 'ray' not in sys.modules, 'ray was imported'\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+def test_plots_survive_a_suite_without_any_ate(tmp_path):
+    from vggt_slam_pp.suite import write_plots
+
+    results = [{"dataset": "d", "sequence": "d", "config": c, "seed": 0, "folder": str(tmp_path / c), "ate": None,
+                "error": "RuntimeError: boom"} for c in ("a", "b")]
+    assert [p.name for p in write_plots(results, tmp_path)] == ["d.png", "summary.png"]
+    assert "fail" in write_tables(results, tmp_path)["md"].read_text()

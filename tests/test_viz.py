@@ -166,3 +166,24 @@ def test_live_viewer_receives_every_submap_and_the_corrected_poses(finished_run,
     assert config["backbone"]["seed"] == 0
     a, b = read_tum(tmp_path / "live" / "keyframes_odometry.txt"), read_tum(finished_run / "keyframes_odometry.txt")
     assert np.array_equal(a.poses, b.poses)
+
+
+def test_height_colours_follow_the_height():
+    from vggt_slam_pp.viz.viewer import height_colors
+
+    c = height_colors(np.linspace(0.0, 10.0, 1000)).astype(int)
+    assert len(np.unique(c, axis=0)) > 50 and not (c == 255).all(axis=1).any()
+    assert np.abs(c[0] - c[-1]).sum() > 100  # ground and tops differ
+
+
+def test_a_live_viewer_that_died_never_blocks_the_run():
+    from vggt_slam_pp.viz.live import LiveViewer
+
+    viewer = LiveViewer(port=_free_port())
+    viewer._proc.kill()
+    viewer._proc.join(10)
+    big = np.zeros((5000, 3), np.float32)  # each message larger than a pipe's buffer
+    for i in range(5):
+        viewer.submap(i, big, None, np.zeros((2, 3)), [0, 1], np.eye(4))
+        viewer.poses({i: np.eye(4)})
+    assert viewer.close() is None and not viewer.alive()

@@ -209,7 +209,8 @@ class Backend:
         t0 = time.perf_counter()
         moved = set(self.map.graph.optimize(window))
         if window is None and self.map.prior_poses:  # a map extended by a recording stays in its frame
-            self.map.keep_prior_frame()
+            if not np.allclose(self.map.keep_prior_frame(), np.eye(4)):
+                moved = set(self.map.graph.poses)  # the held nodes moved with the frame too
         self.timings["optimization_s"] += time.perf_counter() - t0
         self._version += 1
         if refresh:

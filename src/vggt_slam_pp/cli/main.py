@@ -115,7 +115,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"synthetic block loop: {len(source)} frames -> {seq_dir}; running VGGT-SLAM++ (simulated backbone, "
           "hog encoder, offline)")
     report = run(source, config, out / "run", progress=_progress(len(source), "frames"),
-                 input_record={**_INPUT_FLAGS, "input": str(seq_dir)})  # the viewer's thumbnails, --resume
+                 input_record={**_INPUT_FLAGS, "input": str(seq_dir.resolve())})  # the viewer's thumbnails, --resume
     _print_summary(report, out / "run")
     return 0
 

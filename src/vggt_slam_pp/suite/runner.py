@@ -27,14 +27,24 @@ __all__ = ["run_task", "run_suite", "finished_result"]
 RESULT = "result.json"
 
 
+def task_digest(task: Task) -> str:
+    """What the run depends on (its input and its whole configuration): a run made with other settings
+    under the same names is not finished."""
+    import hashlib
+
+    what = {"input": task.input, "layout": task.layout, "gt": task.gt, "stride": task.stride,
+            "max_frames": task.max_frames, "config": task.run_config}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
 def finished_result(task: Task) -> dict | None:
-    """The task's result when it finished without an error, else None."""
+    """The task's result when it finished without an error with the task's settings, else None."""
     path = Path(task.folder) / RESULT
     try:
         r = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if r.get("error") is not None:
+    if r.get("error") is not None or r.get("digest") != task_digest(task):
         return None
     # the task names the run (its folder may have been moved or renamed since)
     return {**r, "dataset": task.dataset, "sequence": task.sequence, "config": task.config, "seed": task.seed,
@@ -50,7 +60,7 @@ def run_task(task: Task) -> dict:
     folder = Path(task.folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = {"dataset": task.dataset, "sequence": task.sequence, "config": task.config, "seed": task.seed,
-           "folder": str(folder), "error": None}
+           "folder": str(folder), "digest": task_digest(task), "error": None}
     t0 = time.perf_counter()
     try:
         source = open_source(task.input, layout=task.layout, ground_truth=task.gt, stride=task.stride)
@@ -63,12 +73,23 @@ def run_task(task: Task) -> dict:
         keys = ("ate_rmse", "ate_rmse_odometry", "ate_reduction", "gt_path_length", "frontend_fps", "fps",
                 "seconds_total", "keyframes", "submaps", "loops_accepted", "degraded_edges", "peak_rss_mb")
         out.update({k: report.get(k) for k in keys})
-        out["ate"] = report.get("ate_rmse", report.get("ate_rmse_odometry"))
+        # the corrected trajectory's with the back-end, the odometry's without (never one for the other)
+        out["ate"] = report.get("ate_rmse") if config.backend else report.get("ate_rmse_odometry")
     except Exception as exc:  # noqa: BLE001 - one failed run is recorded and the suite goes on
         out["error"] = f"{type(exc).__name__}: {exc}".strip()
         out["traceback"] = traceback.format_exc()
     out["seconds"] = time.perf_counter() - t0
     atomic_write_text(folder / RESULT, json.dumps(out, indent=2, default=str))
+    return out
+
+
+def _crashed(task: Task, exc: BaseException) -> dict:
+    """The result of a task whose process died before it could write one (written for it)."""
+    out = {"dataset": task.dataset, "sequence": task.sequence, "config": task.config, "seed": task.seed,
+           "folder": task.folder, "digest": task_digest(task),
+           "error": f"the run's process died: {type(exc).__name__}: {exc}".strip()}
+    Path(task.folder).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(Path(task.folder) / RESULT, json.dumps(out, indent=2, default=str))
     return out
 
 
@@ -110,7 +131,7 @@ def run_suite(suite: SuiteSpec, out: Path, runs: int | None = None, jobs: int = 
     ``jobs``: local processes at a time (1: in this process); ``ray``: ``"local"`` (``ray.init()`` on this
     machine) or a cluster address; ``progress(result, done, total)`` after each task.
     """
-    out = Path(out)
+    out = Path(out).resolve()  # the tasks' folders must mean the same in every worker (a Ray cluster's too)
     if jobs < 1:
         raise InputError(f"--jobs must be >= 1, got {jobs}")
     tasks = expand(suite, out, runs)
@@ -145,7 +166,11 @@ def run_suite(suite: SuiteSpec, out: Path, runs: int | None = None, jobs: int = 
         with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
             futures = {pool.submit(run_task, t): t for t in todo}
             for f in cf.as_completed(futures):
-                record(futures[f], f.result())
+                try:
+                    r = f.result()
+                except Exception as exc:  # noqa: BLE001 - a worker that died (killed, out of memory, crashed)
+                    r = _crashed(futures[f], exc)
+                record(futures[f], r)
     return [results[t.key] for t in tasks]
 
 
@@ -167,7 +192,11 @@ def _run_on_ray(todo: list[Task], address: str, cpus_per_run: float, record) -> 
         pending = list(refs)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
-            record(refs[ready[0]], ray.get(ready[0]))
+            try:
+                r = ray.get(ready[0])
+            except Exception as exc:  # noqa: BLE001 - a worker that died (killed, out of memory, crashed)
+                r = _crashed(refs[ready[0]], exc)
+            record(refs[ready[0]], r)
     finally:
         if started:
             ray.shutdown()

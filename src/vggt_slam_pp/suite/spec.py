@@ -115,7 +115,7 @@ def _nested(overrides: dict, suite: Path, where: str) -> dict:
 def _path(value, base: Path) -> Path:
     """A path from the suite: ``~`` and ``$VARIABLES`` expanded, relative to the suite file's folder."""
     p = Path(os.path.expandvars(str(value))).expanduser()
-    return p if p.is_absolute() else (base / p)
+    return (p if p.is_absolute() else (base / p)).resolve()
 
 
 def load_suite(path: str | Path) -> SuiteSpec:
@@ -217,8 +217,8 @@ def sequences_of(d: DatasetSpec, suite: SuiteSpec, data_dir: Path | None = None)
         folder = (data_dir or Path("data")) / d.name
         return [(d.name, folder)]
     root = d.root
-    try:
-        detect_layout(root) if d.layout == "auto" else None
+    try:  # (an explicit layout opens each sequence; it does not make a folder of sequences one sequence)
+        detect_layout(root)
         found = [(d.name, root)]  # a root that is one sequence: named as the dataset
     except InputError:
         seq_dir = root / "sequences" if (root / "sequences").is_dir() else root

@@ -151,7 +151,8 @@ def write_plots(results: list[dict], out: Path) -> list[Path]:
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(col)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.lines:
+            ax.legend(fontsize=8)
         path = folder / f"{col.replace('/', '__')}.png"
         fig.savefig(path, dpi=90, bbox_inches="tight")
         plt.close(fig)
@@ -166,9 +167,14 @@ def write_plots(results: list[dict], out: Path) -> list[Path]:
         ax.bar(x + k * width - 0.4 + width / 2, means, width, yerr=stds, capsize=3, label=c)
     ax.set_xticks(x, columns, rotation=20, ha="right")
     ax.set_ylabel("ATE (m), mean ± std")
-    ax.set_yscale("log")
+    positive = [cells[k].mean for k in cells if cells[k].mean is not None and cells[k].mean > 0]
+    if positive and max(positive) > 10 * min(positive):
+        ax.set_yscale("log")  # figures of several orders of magnitude side by side
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=8)
+    if positive:
+        ax.legend(fontsize=8)
+    else:
+        ax.set_title("no run has an ATE (failed, or no ground truth)")
     path = folder / "summary.png"
     fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)

@@ -67,8 +67,14 @@ def _serve_loop(port: int, host: str, inbox, ready) -> None:
                 viewer.set_trajectory(name, centres)
 
     stop = False
+    parent = os.getppid()
     while not stop:
-        batch = [inbox.get()]
+        try:
+            batch = [inbox.get(timeout=1.0)]
+        except queue.Empty:
+            if os.getppid() != parent:  # the run is gone (killed): stop serving
+                break
+            continue
         while True:  # everything waiting: new submaps are all drawn, only the newest poses applied
             try:
                 batch.append(inbox.get_nowait())
@@ -101,7 +107,7 @@ class LiveViewer:
     back-end's snapshots, :meth:`close` at the end (the server stops with it unless ``keep_serving``)."""
 
     def __init__(self, port: int = 8080, host: str = "127.0.0.1", points_per_submap: int = 5000,
-                 pose_interval_s: float = 0.5, start_timeout_s: float = 60.0) -> None:
+                 pose_interval_s: float = 0.5, start_timeout_s: float = 60.0, inbox_size: int = 256) -> None:
         import multiprocessing as mp
 
         try:
@@ -112,7 +118,8 @@ class LiveViewer:
 
         self.points_per_submap, self.pose_interval_s = points_per_submap, pose_interval_s
         ctx = mp.get_context("spawn")
-        self._inbox, self._ready = ctx.Queue(), ctx.Queue()
+        self._inbox, self._ready = ctx.Queue(maxsize=inbox_size), ctx.Queue()
+        self._warned = False
         ready = self._ready
         self._proc = ctx.Process(target=_serve, args=(port, host, self._inbox, ready), name="vggt-slam-pp-viewer",
                                  daemon=True)
@@ -138,10 +145,26 @@ class LiveViewer:
         t = time.perf_counter()
         n = len(points)
         keep = np.linspace(0, n - 1, min(n, self.points_per_submap)).astype(np.int64) if n else np.zeros(0, np.int64)
-        self._inbox.put(("submap", int(submap_id), np.asarray(points[keep], np.float32),
-                         None if colors is None else np.asarray(colors[keep], np.uint8),
-                         np.asarray(camera_centers, np.float32), [int(f) for f in frames], np.asarray(T_world_submap)))
+        self._put(("submap", int(submap_id), np.asarray(points[keep], np.float32),
+                   None if colors is None else np.asarray(colors[keep], np.uint8),
+                   np.asarray(camera_centers, np.float32), [int(f) for f in frames], np.asarray(T_world_submap)))
         self.seconds += time.perf_counter() - t
+
+    def _put(self, msg) -> None:
+        """Hand a message over without ever blocking the run: a viewer that died, or lags so far that its
+        (bounded) inbox is full, loses it (said once in the log)."""
+        if not self._proc.is_alive():
+            self._lost("the live viewer stopped")
+            return
+        try:
+            self._inbox.put_nowait(msg)
+        except queue.Full:
+            self._lost("the live viewer lags behind")
+
+    def _lost(self, why: str) -> None:
+        if not self._warned:
+            log.warning("%s: it misses what the run does from now on", why)
+            self._warned = True
 
     def poses(self, poses) -> None:
         """The back-end's newest ``T_world_submap`` per submap; sent at most every ``pose_interval_s``."""
@@ -153,7 +176,7 @@ class LiveViewer:
         if self._pending_poses is None:
             return
         t = time.perf_counter()
-        self._inbox.put(("poses", {int(i): np.asarray(T) for i, T in self._pending_poses.items()}))
+        self._put(("poses", {int(i): np.asarray(T) for i, T in self._pending_poses.items()}))
         self._pending_poses = None
         self._last_poses = time.perf_counter()
         self.seconds += self._last_poses - t
@@ -162,20 +185,22 @@ class LiveViewer:
         """Send the last poses; stop the viewer unless ``keep_serving`` (then it runs until the process that
         made it exits). Returns what the viewer drew (``submaps``, ``pose_updates``, ``nodes``) once stopped."""
         self._send_poses()
-        if keep_serving or not self._proc.is_alive():
+        if keep_serving and self._proc.is_alive():
             return None
-        self._inbox.put(None)
         summary = None
-        try:
-            kind, value = self._ready.get(timeout=30)
-            summary = value if kind == "stopped" else None
-            if kind == "error":
-                log.warning("the live viewer failed: %s", value.splitlines()[0])
-        except queue.Empty:
-            log.warning("the live viewer did not stop in time")
-        self._proc.join(10)
+        if self._proc.is_alive():
+            try:
+                self._inbox.put(None, timeout=5)
+                kind, value = self._ready.get(timeout=30)
+                summary = value if kind == "stopped" else None
+                if kind == "error":
+                    log.warning("the live viewer failed: %s", value.splitlines()[0])
+            except (queue.Full, queue.Empty):
+                log.warning("the live viewer did not stop in time")
+            self._proc.join(10)
         if self._proc.is_alive():
             self._proc.kill()
+        self._inbox.cancel_join_thread()  # nobody reads it any more: never wait for it at exit
         return summary
 
     def alive(self) -> bool:

@@ -162,13 +162,13 @@ def _dem_figure(run: RunFolder):
 
     heights, mpp = run.dem["heights"], run.dem["mpp"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5.5))
-    extent = (0, heights.shape[1] * mpp, heights.shape[0] * mpp, 0)
+    extent = (0, heights.shape[1] * mpp, 0, heights.shape[0] * mpp)  # v up, as a map seen from above
     finite = heights[np.isfinite(heights)]
     lo, hi = (np.percentile(finite, [1, 99]) if len(finite) else (0.0, 1.0))
-    im = a.imshow(heights, cmap="viridis", vmin=lo, vmax=hi, extent=extent)
+    im = a.imshow(heights, cmap="viridis", vmin=lo, vmax=hi, extent=extent, origin="lower")
     fig.colorbar(im, ax=a, shrink=0.7, label="height above the ground plane")
     a.set_title("heights")
-    b.imshow(hillshade_rgb(heights, mpp=mpp), extent=extent)
+    b.imshow(hillshade_rgb(heights, mpp=mpp), extent=extent, origin="lower")
     b.set_title("hillshade")
     for ax in (a, b):
         ax.set_xlabel("x (DEM plane)")

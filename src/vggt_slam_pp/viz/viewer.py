@@ -47,7 +47,7 @@ def height_colors(z: np.ndarray) -> np.ndarray:
     if len(z) == 0:
         return np.zeros((0, 3), np.uint8)
     lo, hi = np.percentile(z, [1, 99])
-    return np.clip(height_ramp(np.clip((z - lo) / max(hi - lo, 1e-9), 0, 1)) * 255, 0, 255).astype(np.uint8)
+    return np.clip(height_ramp(np.clip((z - lo) / max(hi - lo, 1e-9), 0, 1)), 0, 255).astype(np.uint8)  # 0-255
 
 
 def _import_viser():
@@ -86,11 +86,12 @@ class RunViewer:
         self.point_size = point_size
         self.frustum_scale = 0.5  # world units; build_scene sets 1 % of the trajectory's extent
         self.submaps: dict[int, _Submap] = {}
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # viser's callbacks run on its own thread
         self.colour_mode = "image"
         self.visible_upto = None  # the time slider: submaps with id <= this are shown
         self.visible_range = (0, 10**9)
         self.hidden: set[int] = set()  # submaps switched off one by one
+        self._follow = True  # a live run: the time slider follows the newest submap
         # what is shown; rejected candidates (often many) only on request
         self._layers = {"map": True, "cameras": True, "trajectories": True, "loops": True, "rejected": False,
                         "dem": True}
@@ -99,7 +100,8 @@ class RunViewer:
         self.nodes: dict[str, object] = {}  # scene node name -> viser handle, of everything drawn
 
     def _keep(self, handle):
-        self.nodes[handle.name] = handle
+        with self._lock:
+            self.nodes[handle.name] = handle
         return handle
 
     # -- frames ---------------------------------------------------------------------------------
@@ -130,11 +132,10 @@ class RunViewer:
             self._draw_submap(submap_id, sm)
         if "submaps" in self.gui:
             self._submap_toggle(submap_id)
-        if "time" in self.gui:  # a live run: the sliders grow with it (and follow it when at their end)
+        if "time" in self.gui:  # a live run: the sliders grow with it (and follow it unless moved back)
             last, t, r = max(self.submaps), self.gui["time"], self.gui["range"]
-            follow = t.value >= t.max
             t.max = r.max = max(last, 1)
-            if follow:
+            if self._follow:
                 t.value = last
             if r.value[1] >= last - 1:
                 r.value = (r.value[0], last)
@@ -208,8 +209,8 @@ class RunViewer:
         rgb = hillshade_rgb(heights[::step, ::step], mpp=mpp * step)
         u0, v0 = (float(x) * mpp for x in dem["origin_px"])
         centre = (u0 + W * mpp / 2, v0 + H * mpp / 2, -0.01)
-        # viser draws row 0 at +y; the DEM's row 0 is the smallest v
-        self._keep(self.server.scene.add_image("/dem", np.ascontiguousarray(rgb[::-1]), render_width=W * mpp,
+        # viser draws an image's row 0 at its -y edge (as OpenCV images), where the DEM's row 0 (smallest v) belongs
+        self._keep(self.server.scene.add_image("/dem", np.ascontiguousarray(rgb), render_width=W * mpp,
                                                render_height=H * mpp, position=centre, visible=self._layers["dem"]))
 
     # -- GUI --------------------------------------------------------------------------------------
@@ -278,6 +279,7 @@ class RunViewer:
 
     def _set_upto(self, n: int) -> None:
         self.visible_upto = n
+        self._follow = "time" not in self.gui or n >= self.gui["time"].max
         self._refresh_visibility()
 
     def _set_range(self, lo_hi: tuple[int, int]) -> None:
@@ -299,7 +301,8 @@ class RunViewer:
             h.visible = self._layers["rejected"]
 
     def _handles(self, prefix: str) -> list:
-        return [h for name, h in self.nodes.items() if name.startswith(prefix)]
+        with self._lock:
+            return [h for name, h in self.nodes.items() if name.startswith(prefix)]
 
     def _recolour(self, mode: str) -> None:
         self.colour_mode = mode
@@ -327,10 +330,11 @@ class RunViewer:
                 self._draw_submap(sid, sm)
 
     def _remove(self, sm: _Submap) -> None:
-        for h in sm.handles:
-            self.nodes.pop(h.name, None)
-            h.remove()
-        sm.handles = []
+        with self._lock:
+            for h in sm.handles:
+                self.nodes.pop(h.name, None)
+                h.remove()
+            sm.handles = []
 
     def look_at_all(self) -> None:
         """Start the camera above the middle of everything drawn, looking down at it at 45 deg."""
@@ -347,7 +351,8 @@ class RunViewer:
 
     def node_names(self) -> list[str]:
         """The names of the scene nodes drawn (what a person sees in the scene tree)."""
-        return sorted(self.nodes)
+        with self._lock:
+            return sorted(self.nodes)
 
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
@@ -393,14 +398,20 @@ def build_scene(server, run: RunFolder, max_points: int = 300_000) -> RunViewer:
     nodes = run.nodes
     per = max(1000, max_points // max(len(nodes), 1))
     rotations = run.keyframe_rotations()
+    first_own = int(run.report.get("map_submaps", 0))  # an extended map: earlier submaps are another recording's
+    thumbnails = viewer.thumbnails
     for n in nodes:
         got = run.submap_points(n["id"])
         pts, rgb = got if got is not None else (np.zeros((0, 3), np.float32), None)
         frames = n.get("frames", [])
-        rot = np.array([rotations[f] for f in frames]) if frames and all(f in rotations for f in frames) else None
+        own = n["id"] >= first_own  # this run's frames: its thumbnails and keyframe rotations apply
+        viewer.thumbnails = thumbnails if own else None
+        rot = np.array([rotations[f] for f in frames]) if own and frames and all(f in rotations for f in frames) \
+            else None
         viewer.add_submap(n["id"], np.asarray(pts), None if rgb is None else np.asarray(rgb),
                           np.asarray(n.get("camera_centers", np.zeros((0, 3)))), frames,
                           np.asarray(n["T_world_submap"]), camera_rotations=rot, max_points=per)
+    viewer.thumbnails = thumbnails
     if not nodes:
         log.warning("%s has no graph.json (a run without the back-end): trajectories only", run.folder)
     viewer.set_trajectory("odometry", run.odometry.positions)
@@ -449,7 +460,8 @@ def serve(run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, max_po
     run = load_run(run_dir)
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; only the CLI may print
         server = viser.ViserServer(host=host, port=port, verbose=False)
-    server.scene.set_up_direction("+z")
+    # the DEM's ground frame is z up; without a back-end the scene stays in the first camera's frame (y down)
+    server.scene.set_up_direction("+z" if (run.graph or {}).get("plane") else "-y")
     try:
         viewer = build_scene(server, run, max_points)
     except BaseException:

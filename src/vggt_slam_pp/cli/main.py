@@ -390,7 +390,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"second pass {'the other way' if r['reverse'] else 'the same way'}: {r['second_pass_submaps']} submaps, "
             f"placed {r['placed_fraction']:.2f} (target >= 0.9), false placements {r['false_placements']} (target 0), "
             f"ATE in the map's frame {_metres(r['ate_second_pass_map_frame'])} (map {_metres(r['ate_map'])}; target "
-            f"<= 2x); the map's own ATE once extended {_metres(r['ate_map_extended'])}" for r in rows)
+            f"<= 2x); the map's own ATE once extended {_metres(r['ate_map_extended'])}; loops between the two "
+            f"passes {r['loops_across']}, off the truth by > 5 deg / 5 m {len(r['wrong_loops_across'])}" for r in rows)
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
                                          seed=args.seed)

@@ -134,6 +134,11 @@ def run_suite(suite: SuiteSpec, out: Path, runs: int | None = None, jobs: int = 
     out = Path(out).resolve()  # the tasks' folders must mean the same in every worker (a Ray cluster's too)
     if jobs < 1:
         raise InputError(f"--jobs must be >= 1, got {jobs}")
+    if ray is not None:
+        try:  # before anything runs or renders
+            import ray as _  # noqa: F401
+        except ImportError:
+            raise InputError("--ray needs Ray: pip install 'vggt-slam-pp[ray]'") from None
     tasks = expand(suite, out, runs)
     _prepare_data(suite, out)
     results: dict[str, dict] = {}

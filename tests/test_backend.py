@@ -751,3 +751,23 @@ def test_a_large_map_also_gets_its_dem_in_full_resolution_tiles(tmp_path, rng):
     assert np.allclose(assembled[np.isfinite(whole)], whole[np.isfinite(whole)])
     with np.load(out / "dem" / "dem.npz") as d:  # the overview stayed coarser
         assert float(d["mpp"]) > 0.25 and max(d["heights"].shape) <= 100
+
+
+def test_registration_reuses_a_submaps_preprocessing_only_for_the_same_points(rng):
+    """A submap's points never change within a run, so their isolated-point removal, tree and normals are
+    kept for the next candidates; other points under the same id (another run) are not mistaken for them."""
+    from vggt_slam_pp.backend.registration import _Reused
+
+    cache, made = _Reused(size=2), []
+
+    def make(tag):
+        made.append(tag)
+        return tag
+
+    a, b = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
+    assert cache.get(7, a, ("x",), lambda: make("a")) == "a"
+    assert cache.get(7, a.copy(), ("x",), lambda: make("again")) == "a"  # the same points: reused
+    assert cache.get(7, b, ("x",), lambda: make("b")) == "b"  # same id, other points: made anew
+    cache.get(8, a, ("x",), lambda: make("c"))
+    assert cache.get(7, a, ("x",), lambda: make("a2")) == "a2"  # the oldest entry left (size 2)
+    assert made == ["a", "b", "c", "a2"]

@@ -35,6 +35,8 @@ change the loop asks of the query's pose in the world frame.
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import logging
 from dataclasses import dataclass, field
 
@@ -226,6 +228,32 @@ def remove_isolated(points: np.ndarray, k: int = 4, factor: float = 3.0) -> np.n
     return np.nonzero(d <= factor * max(float(np.median(d)), 1e-12))[0]
 
 
+class _Reused:
+    """What registration derives from one submap's points in its own frame (isolated points removed; the
+    match side's KD-tree and normals), kept for the next candidates: a submap's points never change, and
+    consecutive queries register the same matches again. 16 entries, a few submaps' worth (a match's tree
+    and normals take ~100 bytes a point); keyed by the submap id and a fingerprint of its points."""
+
+    def __init__(self, size: int = 16) -> None:
+        self.size = size
+        self._items: collections.OrderedDict = collections.OrderedDict()
+
+    def get(self, sid: int, points: np.ndarray, what: tuple, make):
+        sample = np.ascontiguousarray(points[:: max(1, len(points) // 64)])
+        key = (sid, what, len(points), hashlib.blake2b(sample.tobytes(), digest_size=16).digest())
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key]
+        value = make()
+        self._items[key] = value
+        while len(self._items) > self.size:
+            self._items.popitem(last=False)
+        return value
+
+
+_REUSED = _Reused()
+
+
 def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
     """[N,3] unit normals: the least-variance direction of each point's ``k`` nearest neighbours."""
     _, nn = tree.query(points, min(k, len(points)))
@@ -388,9 +416,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"vote margin {margin:.3f} < {c.min_vote_margin}")
     T0 = sim3_inverse(T_world_match) @ T_world_query  # query frame -> match frame, current estimate
     points_query, points_match = np.asarray(points_query, float), np.asarray(points_match, float)
-    keep_q = remove_isolated(points_query)
+    keep_q = _REUSED.get(query, points_query, ("isolated",), lambda: remove_isolated(points_query))
     keep_q = keep_q[_subsample(len(keep_q), c.max_points, query)]
-    keep_m = remove_isolated(points_match)
+    keep_m = _REUSED.get(match, points_match, ("isolated",), lambda: remove_isolated(points_match))
     src, dst = points_query[keep_q], points_match[keep_m]
     hue_src = hue_vectors(None if colors_query is None else np.asarray(colors_query)[keep_q], len(src),
                           c.full_saturation)
@@ -409,7 +437,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst)
     for k, (G, _) in enumerate(found):
         guesses[f"search_{k + 1}"] = G
-    tree = cKDTree(dst)
+    tree = _REUSED.get(match, points_match, ("tree",), lambda: cKDTree(dst))
     # a guess is worth refining only if enough of the query lies within the ICP's first radius
     guesses = {k: G for k, G in guesses.items()
                if np.isfinite(tree.query(transform_points(G, src), distance_upper_bound=c.icp_radius_tiles * unit)[0]
@@ -435,7 +463,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
                   [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
     r_in = c.inlier_radius_tiles * unit
-    normals = point_normals(dst, tree, c.normals_k)
+    normals = _REUSED.get(match, points_match, ("normals", c.normals_k), lambda: point_normals(dst, tree, c.normals_k))
     refined = []
     for name, G in guesses.items():
         T, H, centre = icp_point_to_plane(transform_points(G, src), tree, dst, normals, radii, c.icp_scale_rounds)

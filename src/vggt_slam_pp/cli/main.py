@@ -295,10 +295,12 @@ def _print_summary(report: dict, out) -> None:
     if "loops_accepted" in report:
         files = ("keyframes.txt/.kitti, frames.txt/.kitti (corrected), " + files +
                  ", graph.json, map.ply, dem/, trajectory.png")
-    if (Path(out) / "report.html").is_file():
+    has_report = (Path(out) / "report.html").is_file()
+    if has_report:
         files += ", report.html"
     print(f"outputs: {out}/ ({files})")
-    print(f"see it: open {out}/report.html, or `vggt-slam-pp view {out}` for the 3-D viewer")
+    print("see it: " + (f"open {out}/report.html, or " if has_report else "") +
+          f"`vggt-slam-pp view {out}` for the 3-D viewer")
 
 
 # ------------------------------------------------------------------ evaluate

@@ -134,6 +134,8 @@ def run_suite(suite: SuiteSpec, out: Path, runs: int | None = None, jobs: int = 
     out = Path(out).resolve()  # the tasks' folders must mean the same in every worker (a Ray cluster's too)
     if jobs < 1:
         raise InputError(f"--jobs must be >= 1, got {jobs}")
+    if runs is not None and runs < 1:
+        raise InputError(f"--runs must be >= 1, got {runs}")
     if ray is not None:
         try:  # before anything runs or renders
             import ray as _  # noqa: F401

@@ -365,12 +365,8 @@ def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: Ou
         return
     body = out / "map.ply.points.tmp"
     n, lo, hi, sample = 0, np.full(2, np.inf), np.full(2, -np.inf), []
-    boxes: dict[int, np.ndarray] = {}  # each submap's canonical (u, v) extent: min, max [2, 2]
     with open(body, "wb") as f:
         for sid in ids:
-            full = plane.to_canonical(transform_points(backend.poses[sid], store.get(sid)))[:, :2]
-            boxes[sid] = np.stack([full.min(0), full.max(0)])
-            del full
             sel = submap_cloud(store.get(sid), backend.poses[sid], config.ply_points_per_submap, config.map_voxel)
             if not len(sel):
                 continue
@@ -400,11 +396,11 @@ def _write_map(out: Path, backend: BackendResult, store: SubmapStore, config: Ou
     export_dem(out / "dem", fused, grid.mpp, plane, origin)
     del fused
     if factor > 1 and config.dem_tiles:
-        _write_dem_tiles(out / "dem" / "tiles", backend, store, ids, plane, boxes, config)
+        _write_dem_tiles(out / "dem" / "tiles", backend, store, ids, plane, config)
 
 
 def _write_dem_tiles(folder: Path, backend: BackendResult, store: SubmapStore, ids: list[int], plane: GroundPlane,
-                     boxes: dict[int, np.ndarray], config: OutputConfig) -> None:
+                     config: OutputConfig) -> None:
     """The fused DEM at the back-end's resolution, cut into square tiles of about ``dem_tile_px`` pixels
     (``tile_IV_IU.npz`` with ``_color.png`` beside it, as ``export_dem`` writes; ``index.json`` lists
     them with their origin pixels). One tile is in memory at a time, fused from the submaps whose extent
@@ -412,6 +408,10 @@ def _write_dem_tiles(folder: Path, backend: BackendResult, store: SubmapStore, i
     tile_px = int(round(backend.tile_size / backend.mpp))
     grid = DemGrid(plane, backend.mpp, tile_px)
     side = max(1, round(config.dem_tile_px / tile_px)) * tile_px
+    boxes = {}  # each submap's canonical (u, v) extent: min, max [2, 2] (all its points, one at a time)
+    for sid in ids:
+        uv = plane.to_canonical(transform_points(backend.poses[sid], store.get(sid)))[:, :2]
+        boxes[sid] = np.stack([uv.min(0), uv.max(0)])
     # a layer's pixel box, as rasterize pads it: whole DEM tiles from the one holding its lowest pixel
     px = {sid: np.floor(b / grid.mpp).astype(np.int64) for sid, b in boxes.items()}
     lo_px = {sid: (p[0] // tile_px) * tile_px for sid, p in px.items()}

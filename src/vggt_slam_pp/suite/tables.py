@@ -120,7 +120,7 @@ def write_plots(results: list[dict], out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from vggt_slam_pp.errors import VggtSlamError
-    from vggt_slam_pp.viz.run_folder import aligned_positions, load_run
+    from vggt_slam_pp.viz.run_folder import aligned_positions, load_run, motion_axes
 
     folder = out / "plots"
     folder.mkdir(parents=True, exist_ok=True)
@@ -141,7 +141,8 @@ def write_plots(results: list[dict], out: Path) -> list[Path]:
             _, p, truth, _ = aligned_positions(run.corrected or run.odometry, run.ground_truth)
             if plane is None:  # the plane of most motion (KITTI's ground is x-z, EuRoC's x-y)
                 ref = truth if truth is not None else p
-                plane = (ref.mean(0), np.linalg.svd(ref - ref.mean(0), full_matrices=False)[2][:2])
+                mean, axes = motion_axes(ref)
+                plane = (mean, axes[:2])
             if truth is not None and not truth_drawn:
                 q = (truth - plane[0]) @ plane[1].T
                 ax.plot(q[:, 0], q[:, 1], "k-", lw=1.5, label="ground truth")

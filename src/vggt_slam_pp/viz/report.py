@@ -19,7 +19,7 @@ import numpy as np
 
 from vggt_slam_pp.errors import VggtSlamError
 from vggt_slam_pp.io.trajectory import atomic_write_text
-from vggt_slam_pp.viz.run_folder import RunFolder, aligned_positions, load_run
+from vggt_slam_pp.viz.run_folder import RunFolder, aligned_positions, load_run, motion_axes
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +86,7 @@ def _trajectory_figure(run: RunFolder, series: dict):
 
     gt = run.ground_truth
     base = gt.positions if gt is not None else series.get("corrected", series["odometry"])[1]
-    mean = base.mean(0)
-    axes = np.linalg.svd(base - mean, full_matrices=False)[2]  # of most motion first, the "height" last
+    mean, axes = motion_axes(base)  # most motion first, the "height" last
     fig, (top, side) = plt.subplots(1, 2, figsize=(12, 5.5), gridspec_kw={"width_ratios": [1, 1]})
     curves = ([("ground truth", gt.positions)] if gt is not None else []) + [(k, v[1]) for k, v in series.items()]
     for name, p in curves:

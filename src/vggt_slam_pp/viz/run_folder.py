@@ -20,7 +20,7 @@ from vggt_slam_pp.io.trajectory import Trajectory, read_tum
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunFolder", "load_run", "aligned_positions"]
+__all__ = ["RunFolder", "load_run", "aligned_positions", "motion_axes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,3 +144,10 @@ def aligned_positions(trajectory: Trajectory, ground_truth: Trajectory | None
             p, truth = aligned[:, :3, 3], ground_truth.poses[i_ref][:, :3, 3]
             return trajectory.timestamps[i_est], p, truth, np.linalg.norm(p - truth, axis=1)
     return trajectory.timestamps, trajectory.positions, None, None
+
+
+def motion_axes(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean [3], axes [3,3])`` of a path [N,3]: rows are the directions of most motion first, the
+    least last (a top view projects on the first two, a side view on the first and the last)."""
+    mean = positions.mean(0)
+    return mean, np.linalg.svd(positions - mean, full_matrices=False)[2]

@@ -189,3 +189,30 @@ def test_trajectory_file_with_repeated_stamps_is_resampled(tmp_path):
     traj, style = from_trajectory_file(tmp_path / "t.txt", 25)
     assert len(traj) == 25 and style == "indoor"
     assert np.all(np.isfinite(traj.poses))
+
+
+def test_an_interrupted_render_resumes_and_another_scene_starts_over(tmp_path, monkeypatch):
+    scene = make_scene("loop", frames=6, width=64, height=48, seed=5)
+    write_sequence(scene, tmp_path / "seq")
+    files = sorted((tmp_path / "seq" / "rgb").glob("*.png"))
+    for p in files[4:]:  # interrupted after 4 frames
+        p.unlink()
+    (tmp_path / "seq" / "groundtruth.txt").unlink()
+    (tmp_path / "seq" / "depth" / files[0].name).write_bytes(b"kept, not rendered again")
+    rendered = []
+    original = Renderer.render
+
+    def counting(self, T):
+        rendered.append(T)
+        return original(self, T)
+
+    monkeypatch.setattr(Renderer, "render", counting)
+    write_sequence(scene, tmp_path / "seq")
+    assert len(rendered) == 3  # the 4th frame (maybe half-written) and the two missing ones
+    assert (tmp_path / "seq" / "depth" / files[0].name).read_bytes() == b"kept, not rendered again"
+    assert len(open_source(tmp_path / "seq")) == 6 and all((tmp_path / "seq" / "rgb" / p.name).is_file() for p in files)
+    rendered.clear()
+    other = make_scene("loop", frames=6, width=64, height=48, seed=6)  # another world: nothing is kept
+    write_sequence(other, tmp_path / "seq")
+    assert len(rendered) == 6
+    assert (tmp_path / "seq" / "depth" / files[0].name).read_bytes().startswith(b"\x89PNG")

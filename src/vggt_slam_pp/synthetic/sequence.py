@@ -92,6 +92,10 @@ def write_sequence(
     ``aperiodic``: a texture that does not repeat (see :class:`Renderer`); the periodic default keeps the
     images that the loop-closure benchmarks were measured on.
 
+    An interrupted render resumes: ``render.json`` (written first) names what is rendered, and when it
+    matches, frames whose colour and depth images are both on disk are kept (the last of them is
+    rendered again: it may be the one that was being written).
+
     Returns:
         a summary: frames, seconds spent rendering and writing, seconds per frame.
     """
@@ -101,21 +105,24 @@ def write_sequence(
     max_depth = max_depth or (80.0 if scene.world.style == "outdoor" else 15.0)
     renderer = Renderer(scene.world, scene.camera, max_depth=max_depth, aperiodic=aperiodic)
     traj = scene.trajectory
+    done = _resumable(out, _fingerprint(scene, depth_scale, max_depth, aperiodic))
     rgb_lines = ["# color images", "# timestamp filename"]
     depth_lines = ["# depth maps", "# timestamp filename"]
     t0 = time.perf_counter()
     t_render = 0.0
     for i, (ts, T) in enumerate(zip(traj.timestamps, traj.poses, strict=False)):
+        name = f"{ts:.6f}.png"
+        rgb_lines.append(f"{ts:.6f} rgb/{name}")
+        depth_lines.append(f"{ts:.6f} depth/{name}")
+        if i + 1 < done:
+            continue
         tr = time.perf_counter()
         rgb, depth = renderer.render(T)
         t_render += time.perf_counter() - tr
-        name = f"{ts:.6f}.png"
         if not cv2.imwrite(str(out / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                            [cv2.IMWRITE_PNG_COMPRESSION, 1]):
             raise SyntheticError(f"cannot write {out / 'rgb' / name}")
         write_depth_png(out / "depth" / name, depth, depth_scale)
-        rgb_lines.append(f"{ts:.6f} rgb/{name}")
-        depth_lines.append(f"{ts:.6f} depth/{name}")
         if progress is not None:
             progress(i + 1, len(traj))
     atomic_write_text(out / "rgb.txt", "\n".join(rgb_lines) + "\n")
@@ -133,3 +140,33 @@ def write_sequence(
                "seconds_per_frame": total / n, "path_length": traj.path_length(), "out": str(out)}
     log.info("wrote %d frames to %s in %.1f s (%.3f s/frame)", n, out, total, total / n)
     return summary
+
+
+def _fingerprint(scene: SyntheticScene, depth_scale: float, max_depth: float, aperiodic: bool) -> dict:
+    """What a rendered frame depends on (the world, the camera, the poses and the rendering options)."""
+    import hashlib
+
+    poses = np.ascontiguousarray(scene.trajectory.poses, np.float64).tobytes()
+    w = scene.world
+    world = json.dumps({"style": w.style, "seed": w.seed, "ground_color": np.asarray(w.ground_color).tolist(),
+                        "solids": [s.to_dict() for s in w.solids]}, sort_keys=True).encode()
+    cam = scene.camera
+    return {"name": scene.name, "frames": len(scene.trajectory), "depth_scale": depth_scale, "max_depth": max_depth,
+            "aperiodic": aperiodic, "style": scene.world.style,
+            "camera": [cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height],
+            "poses_sha1": hashlib.sha1(poses).hexdigest(), "world_sha1": hashlib.sha1(world).hexdigest()}
+
+
+def _resumable(out: Path, fingerprint: dict) -> int:
+    """How many leading frames of an earlier render of the same ``fingerprint`` into ``out`` are on disk
+    (0 when there was none or it was of something else); writes the fingerprint for this render."""
+    path = out / "render.json"
+    try:
+        same = json.loads(path.read_text()) == fingerprint
+    except (OSError, ValueError):
+        same = False
+    atomic_write_text(path, json.dumps(fingerprint, indent=1))
+    if not same:
+        return 0
+    names = {p.name for p in (out / "rgb").glob("*.png")} & {p.name for p in (out / "depth").glob("*.png")}
+    return len(names)

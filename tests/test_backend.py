@@ -771,3 +771,44 @@ def test_registration_reuses_a_submaps_preprocessing_only_for_the_same_points(rn
     cache.get(8, a, ("x",), lambda: make("c"))
     assert cache.get(7, a, ("x",), lambda: make("a2")) == "a2"  # the oldest entry left (size 2)
     assert made == ["a", "b", "c", "a2"]
+
+
+def test_drift_bounds_follow_the_shortest_path_through_accepted_loops(tmp_path):
+    """A loop candidate is searched as far as the estimate can have drifted between its two submaps: along
+    the odometry chain when no loop links them, through an accepted loop when one does (a revisit that
+    has been closed once is not searched across the whole chain again); a degraded edge on that path
+    still widens it."""
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.graph import Edge
+    from vggt_slam_pp.backend.loops import LoopCloser
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.backend.registration import drift_bounds
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"),
+            Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0))))
+    m.gallery.grid = type("Grid", (), {"tile_size": 2.0})()
+    for i in range(40):  # out along a street and back: submap i and 39 - i are at the same place
+        x = 10.0 * min(i, 39 - i)
+        m.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([x, 0.0, 0.0])))
+        m.segment[i] = 0
+    closer = LoopCloser(BackendConfig(), m)
+    reg = closer.config.registration
+    steps = [float(np.linalg.norm(m.graph.poses[i + 1][:3, 3] - m.graph.poses[i][:3, 3])) for i in range(39)]
+    chain = drift_bounds(reg, 37, sum(steps[1:38]), 2.0)
+    assert closer.drift_path(38, 1) == (37, sum(steps[1:38]), [], 0)
+    b = closer.bounds(1, 38)
+    assert (b.max_log_scale, b.max_translation, b.max_yaw_deg) == (chain.max_log_scale, chain.max_translation,
+                                                                   chain.max_yaw_deg)
+    m.graph.add_edge(Edge(2, 37, np.eye(4), np.full(7, 0.1), "loop"))
+    assert closer.drift_path(38, 1) == (2, 20.0, [], 1)  # 38 -> 37, the loop, 2 -> 1
+    short = closer.bounds(1, 38)
+    expect = drift_bounds(reg, 3, 20.0, 2.0)
+    assert short.max_translation == pytest.approx(expect.max_translation + reg.loop_hop_tiles * 2.0)
+    assert short.max_translation < 0.5 * chain.max_translation and short.max_log_scale < 0.5 * chain.max_log_scale
+    m.degraded_edges.add(37)  # 37 -> 38 extrapolated: the short path still carries it
+    hops, length, degraded, loops = closer.drift_path(38, 1)
+    assert (hops, loops, degraded) == (2, 1, [10.0])
+    assert closer.bounds(1, 38).max_translation > short.max_translation + reg.degraded_steps * 10.0 - 1e-9

@@ -251,15 +251,65 @@ class LoopCloser:
 
     def bounds(self, match: int, query: int) -> LoopBounds:
         """What odometry can have drifted between ``match`` and ``query`` (submap ids):
-        :func:`~vggt_slam_pp.backend.registration.drift_bounds` over the chain between them in the
-        current estimate, with its degraded edges."""
+        :func:`~vggt_slam_pp.backend.registration.drift_bounds` along the least uncertain path between
+        them in the pose graph (:meth:`drift_path`): accepted loops shorten it, so once a revisit has been
+        closed, the next submaps of that revisit are searched only as far as their short path allows, not
+        as far as the whole chain of odometry back to the match."""
         m = self.map
         if not m.same_segment(match, query):  # no odometry between them: physical limits
             return LoopBounds(self.config.registration.max_scale_change, np.inf, 180.0)
-        lo, hi = min(match, query), max(match, query)
+        hops, path, degraded, loops = self.drift_path(query, match)
+        reg = self.config.registration
+        b = drift_bounds(reg, hops + loops, path, self.tile_size, degraded)
+        if not loops:
+            return b
+        return LoopBounds(b.max_log_scale, b.max_translation + loops * reg.loop_hop_tiles * self.tile_size, b.max_yaw_deg)
+
+    def drift_path(self, a: int, b: int) -> tuple[int, float, list[float], int]:
+        """The path from submap ``a`` to ``b`` through the pose graph (odometry edges between consecutive
+        submaps of a recording, and accepted loops) along which the current estimate can have drifted least:
+        Dijkstra on the translation each edge can add (``translation_drift`` of an odometry step's length,
+        plus ``degraded_steps`` of it for a degraded edge; ``loop_hop_tiles`` for a loop). Returns (odometry
+        edges on it, their total length, the lengths of its degraded edges, loops on it); without loops this
+        is the chain of odometry between the two."""
+        import heapq
+
+        m, reg = self.map, self.config.registration
+        poses = m.graph.poses
+        loop_adj: dict[int, list[int]] = {}
+        for e in m.graph.edges:
+            if e.kind == "loop":
+                loop_adj.setdefault(e.i, []).append(e.j)
+                loop_adj.setdefault(e.j, []).append(e.i)
+        hop_cost = reg.loop_hop_tiles * self.tile_size
+        best = {a: 0.0}
+        state = {a: (0, 0.0, (), 0)}  # hops, length, degraded lengths, loops
+        heap = [(0.0, a)]
+        while heap:
+            cost, i = heapq.heappop(heap)
+            if i == b:
+                hops, length, degraded, loops = state[i]
+                return hops, length, list(degraded), loops
+            if cost > best.get(i, np.inf):
+                continue
+            hops, length, degraded, loops = state[i]
+            steps = []
+            for j in (i - 1, i + 1):
+                if j in poses and m.same_segment(i, j):
+                    step = float(np.linalg.norm(poses[j][:3, 3] - poses[i][:3, 3]))
+                    bad = min(i, j) in m.degraded_edges
+                    add = reg.translation_drift * step + (reg.degraded_steps * step if bad else 0.0)
+                    steps.append((j, add, (hops + 1, length + step, degraded + ((step,) if bad else ()), loops)))
+            for j in loop_adj.get(i, ()):
+                steps.append((j, hop_cost, (hops, length, degraded, loops + 1)))
+            for j, add, st in steps:
+                if cost + add < best.get(j, np.inf):
+                    best[j] = cost + add
+                    state[j] = st
+                    heapq.heappush(heap, (cost + add, j))
+        lo, hi = min(a, b), max(a, b)  # not connected (cannot happen within a segment): the id chain
         steps = m.steps(lo, hi)
-        degraded = [float(steps[i - lo]) for i in sorted(m.degraded_edges) if lo <= i < hi and i - lo < len(steps)]
-        return drift_bounds(self.config.registration, hi - lo, float(steps.sum()), self.tile_size, degraded)
+        return hi - lo, float(steps.sum()), [], 0
 
     def prune(self, min_weight: float) -> int:
         """Loops the robust pose graph switched off (weight below ``min_weight`` after a global solve:

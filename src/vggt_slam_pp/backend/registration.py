@@ -85,6 +85,8 @@ class RegistrationConfig:
     min_yaw_bound_deg: float = 10.0
     translation_drift: float = 0.06  # the query may have moved this share of the path between the two
     min_translation_bound_tiles: float = 3.0
+    loop_hop_tiles: float = 2.0  # an accepted loop on the drift path (LoopCloser.bounds) adds this much translation
+    # (and one submap of scale and yaw random walk): what a loop's own registration error can be
     degraded_log_scale: float = 0.3  # each degraded (extrapolated) odometry edge in between adds these
     degraded_yaw_deg: float = 30.0
     degraded_steps: float = 2.0  # times that edge's own length

@@ -389,6 +389,10 @@ class _BackendFeeder:
             sm = self.frontend.submaps[self.sent]
             pts, colors, centres = _points_and_cameras(sm)
             self.worker.store.put(sm.id, pts, colors)
+            features = sm.prediction.info.get("features")
+            if features and Path(features).is_file():  # a sparse backbone's features: loops from images
+                p = sm.prediction
+                self.worker.store.put_features(sm.id, features, p.T_cam_submap, p.valid, p.frame_indices)
             edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
             self.worker.submit(SubmapMessage(sm.id, centres, edge))
             self.sent += 1

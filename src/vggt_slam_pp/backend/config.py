@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from vggt_slam_pp.backend.graph import GraphConfig
+from vggt_slam_pp.backend.image_loops import ImageLoopConfig
 from vggt_slam_pp.backend.places import CovisibilityConfig
 from vggt_slam_pp.backend.registration import RegistrationConfig
 
@@ -25,6 +26,7 @@ class BackendConfig:
     encoder_weights: str | None = None  # dinov2: a path or hub name; None = the default resolution
     covisibility: CovisibilityConfig = field(default_factory=CovisibilityConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    images: ImageLoopConfig = field(default_factory=ImageLoopConfig)  # loops from images (sparse backbones)
     graph: GraphConfig = field(default_factory=GraphConfig)
     candidates_per_query: int = 3
     proximity_candidates: int = 2  # also verify the nearest earlier submaps in the current estimate

@@ -7,7 +7,10 @@ which verified registrations become edges of the pose graph.
    the ``proximity_candidates`` nearest earlier submaps in the current estimate; a submap of a recording
    not yet placed in the map gets its ``unplaced_candidates`` best covisible submaps by votes instead;
 2. each is registered and verified (:func:`~vggt_slam_pp.backend.registration.register_loop`) within the
-   bounds odometry allows (:meth:`LoopCloser.bounds`);
+   bounds odometry allows (:meth:`LoopCloser.bounds`, along the least uncertain path through the pose
+   graph); when both submaps come from a sparse backbone that kept its image features, the best
+   ``images.max_candidates`` are registered from their images instead
+   (:func:`~vggt_slam_pp.backend.image_loops.register_by_images`);
 3. a verified loop becomes an edge when it closes a consistent cycle with another verified loop
    (:meth:`LoopCloser.consistent`, pairwise consistency) or when its correction is within one sigma of the
    drift model (:meth:`LoopCloser.odometry_consistent`); a loop that would place a recording in the map
@@ -22,6 +25,7 @@ import logging
 
 import numpy as np
 
+from vggt_slam_pp.backend import image_loops
 from vggt_slam_pp.backend.config import BackendConfig
 from vggt_slam_pp.backend.graph import Edge
 from vggt_slam_pp.backend.map import Map, subsample
@@ -121,18 +125,18 @@ class LoopCloser:
         found their partner; their edges are already in the graph."""
         m, g = self.map, self.map.graph
         accepted: list[LoopResult] = []
-        grid = m.gallery.grid
+        by_images = 0
         for match, score, margin, source in self.candidates(sid, res):
-            keys, desc = m.gallery.tiles_of(match)
-            ia, ib = mutual_matches(res.chip_descriptors, desc)
-            chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
-            tile_uv = m.gallery.tile_centers_uv(keys[ib])
-            pm = subsample(m.store.get(match), self.config.registration_max_points)
-            cm = m.store.get_colors(match) if colors is not None else None
-            cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
-            r = register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
-                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
-                              colors_query=colors, colors_match=cm)
+            if self.config.images.enabled and image_loops.available(m.store, sid, match):
+                # a sparse backbone's submaps: their images verify a loop, their few shared points cannot
+                if by_images >= self.config.images.max_candidates:
+                    continue
+                by_images += 1
+                r = image_loops.register_by_images(
+                    sid, match, m.store, g.poses[sid], g.poses[match], self.bounds(match, sid), self.config.images,
+                    score, slack=self.config.registration.icp_radius_tiles * self.tile_size)
+            else:
+                r = self._register(sid, match, score, margin, res, points, colors)
             r = dataclasses.replace(r, source=source)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
                      sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
@@ -160,6 +164,21 @@ class LoopCloser:
             self.loops.append(r)
             accepted.append(self._add(r))
         return accepted
+
+    def _register(self, sid: int, match: int, score: float, margin: float, res: StageResult, points: np.ndarray,
+                  colors: np.ndarray | None) -> LoopResult:
+        """Register candidate ``sid`` -> ``match`` from the two submaps' points (registration.py)."""
+        m, g, grid = self.map, self.map.graph, self.map.gallery.grid
+        keys, desc = m.gallery.tiles_of(match)
+        ia, ib = mutual_matches(res.chip_descriptors, desc)
+        chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
+        tile_uv = m.gallery.tile_centers_uv(keys[ib])
+        pm = subsample(m.store.get(match), self.config.registration_max_points)
+        cm = m.store.get_colors(match) if colors is not None else None
+        cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
+        return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
+                             chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
+                             colors_query=colors, colors_match=cm)
 
     def _wait(self, r: LoopResult) -> None:
         self._pending.append(len(self.loops))

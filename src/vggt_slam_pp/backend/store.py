@@ -1,13 +1,15 @@
 """Submap point clouds on disk, loaded on demand (SPEC 3.12: bounded memory).
 
 Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``, and their
-image colours (uint8 [N,3], when known) to ``<folder>/<id>.rgb.npy``; a small LRU cache holds the
+image colours (uint8 [N,3], when known) to ``<folder>/<id>.rgb.npy``; a sparse backbone's feature database
+and cameras to ``<id>.features.db`` and ``<id>.cameras.npz`` (loops found from images); a small LRU cache holds the
 active window's points. Both the front-end process (writer) and the back-end worker process
 (reader) open the same folder.
 """
 
 from __future__ import annotations
 
+import shutil
 from collections import OrderedDict
 from pathlib import Path
 
@@ -53,6 +55,37 @@ class SubmapStore:
             return np.load(path)
         except (OSError, ValueError) as exc:
             raise BackendError(f"cannot read the colours of submap {submap_id} from {self.folder}: {exc}") from exc
+
+    def features_path(self, submap_id: int) -> Path:
+        return self.folder / f"{submap_id:06d}.features.db"
+
+    def cameras_path(self, submap_id: int) -> Path:
+        return self.folder / f"{submap_id:06d}.cameras.npz"
+
+    def put_features(self, submap_id: int, database: str | Path, T_cam_submap: np.ndarray, valid: np.ndarray,
+                     frame_indices: np.ndarray) -> None:
+        """Keep a sparse backbone's feature ``database`` of the submap (COLMAP: its keyframes' keypoints,
+        descriptors and matches; moved here) with its cameras ``T_cam_submap`` [S,4,4], which of them are
+        ``valid`` [S] and their source ``frame_indices`` [S]: what loops found from images need
+        (:mod:`vggt_slam_pp.backend.image_loops`)."""
+        tmp = self.folder / f"{submap_id:06d}.cameras.tmp.npz"
+        with open(tmp, "wb") as f:
+            np.savez(f, T_cam_submap=np.asarray(T_cam_submap, np.float64), valid=np.asarray(valid, bool),
+                     frame_indices=np.asarray(frame_indices, np.int64))
+        shutil.move(str(database), self.features_path(submap_id))
+        tmp.replace(self.cameras_path(submap_id))
+
+    def get_features(self, submap_id: int) -> tuple[Path, dict[str, np.ndarray]] | None:
+        """(feature database, cameras) of submap ``submap_id`` (:meth:`put_features`), or None when its
+        backbone kept none."""
+        db, cams = self.features_path(submap_id), self.cameras_path(submap_id)
+        if not (db.is_file() and cams.is_file()):
+            return None
+        try:
+            with np.load(cams) as z:
+                return db, {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise BackendError(f"cannot read the cameras of submap {submap_id} from {self.folder}: {exc}") from exc
 
     def get(self, submap_id: int) -> np.ndarray:
         if submap_id in self._cache:

@@ -92,7 +92,9 @@ class ColmapBackbone(Backbone):
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
                  freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
                  anchored: bool = True, max_image_size: int = 1600, refine_principal_point: bool = True,
-                 camera_model: str = "OPENCV", fix_anchor: bool = True) -> None:
+                 camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True) -> None:
+        import weakref
+
         import pycolmap
 
         if not log.isEnabledFor(logging.DEBUG):  # COLMAP's own (glog) chatter only when debugging
@@ -117,6 +119,12 @@ class ColmapBackbone(Backbone):
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
+        # each reconstructed submap's feature database (keypoints, descriptors, its matches and its final
+        # camera) is kept for loops found from images (backend/image_loops.py): the front-end hands the
+        # committed submap's file to the submap store (``info["features"]``); the rest goes with this folder
+        self._features = Path(tempfile.mkdtemp(prefix="vggt_slam_features_")) if keep_features else None
+        if self._features is not None:
+            weakref.finalize(self, shutil.rmtree, str(self._features), True)
         self._estimated: tuple[tuple[int, int], list[float]] | None = None  # (size, OPENCV params)
         self.camera: dict = {}  # the shared camera for the report: model, params, source, history
         self._span = (0, 0)  # first and last frame index of the submap being reconstructed
@@ -310,6 +318,21 @@ class ColmapBackbone(Backbone):
                        "source": source, "history": history}
         log.info("colmap: %s camera %s: %s", cam.model.name, source, " ".join(f"{v:.4g}" for v in params))
 
+    def _keep_features(self, db: Path, rec) -> Path:
+        """A copy of the submap's feature database with the reconstruction's final camera in it (an estimated
+        camera is refined by bundle adjustment; the database still holds its starting values)."""
+        import pycolmap
+
+        out = self._features / f"{self._count:06d}.db"
+        shutil.copyfile(db, out)
+        database = pycolmap.Database.open(out)
+        try:
+            for cam in rec.cameras.values():
+                database.update_camera(cam)
+        finally:
+            database.close()
+        return out
+
     # -- conversion -----------------------------------------------------------------------------
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         S = len(frames)
@@ -321,6 +344,8 @@ class ColmapBackbone(Backbone):
             pred = self._to_prediction(rec, names, frames)
             if rec is not None and pred.valid.sum() >= 2:
                 self._pending.append((tuple(int(f.index) for f in frames), rec))
+                if self._features is not None:
+                    pred.info["features"] = str(self._keep_features(work / "database.db", rec))
             return pred
         finally:
             if self.keep_workdir is not None:

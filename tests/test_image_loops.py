@@ -1,0 +1,76 @@
+"""Loops found from images (sparse backbones): a revisit that shares few 3-D points is registered by
+matching the two submaps' keyframes and registering the query's into the match's own cameras."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vggt_slam_pp.backend.image_loops import ImageLoopConfig, available, fit_similarity, register_by_images
+from vggt_slam_pp.backend.registration import LoopBounds
+from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, so3_exp
+
+
+def test_fit_similarity_recovers_a_similarity_from_cameras(rng):
+    S = make_sim3(1.7, so3_exp(np.array([0.1, -0.3, 0.8])), np.array([3.0, -1.0, 2.0]))
+    cams = np.array([make_sim3(1.0, so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 5, 3)) for _ in range(6)])
+    T, rel = fit_similarity(cams, np.array([S @ C for C in cams]))
+    assert np.allclose(T, S, atol=1e-9) and rel < 1e-9
+    line = cams.copy()  # cameras along a line: the rotation about it comes from their orientations
+    line[:, :3, 3] = np.outer(np.arange(6.0), [1.0, 0.2, 0.0])
+    T, rel = fit_similarity(line, np.array([S @ C for C in line]))
+    assert np.allclose(T, S, atol=1e-9) and rel < 1e-9
+
+
+@pytest.fixture(scope="module")
+def passes(tmp_path_factory):
+    """Two passes along the start of the rendered block loop (0.4 m apart sideways), and a stretch further
+    on: three short submaps reconstructed by the COLMAP backbone, their features in a submap store."""
+    pytest.importorskip("pycolmap")
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    scene = make_scene("loop", frames=600, width=320, height=240, seed=0)
+    traj = scene.trajectory
+    first = traj.subset(np.arange(0, 14, 2))
+    shifted = first.poses.copy()
+    shifted[:, :3, 3] += shifted[:, :3, 0] * 0.4  # 0.4 m to the camera's right
+    second = dataclasses.replace(first, poses=shifted)
+    elsewhere = traj.subset(np.arange(40, 54, 2))
+    store = SubmapStore(tmp_path_factory.mktemp("store"))
+    truth = {}
+    for sid, part in enumerate((first, second, elsewhere)):
+        out = tmp_path_factory.mktemp(f"pass{sid}")
+        write_sequence(dataclasses.replace(scene, trajectory=part), out, aperiodic=True)
+        src = open_source(out)
+        frames = [dataclasses.replace(src[i], index=100 * sid + i) for i in range(len(src))]
+        backbone = ColmapBackbone(calibrated=True)  # its feature files live as long as it does
+        pred = backbone.predict(frames)
+        assert pred.valid.all()
+        store.put_features(sid, pred.info["features"], pred.T_cam_submap, pred.valid, pred.frame_indices)
+        centres = np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+        scale = np.linalg.norm(np.diff(part.poses[[0, -1], :3, 3], axis=0)) / np.linalg.norm(centres[-1] - centres[0])
+        truth[sid] = make_sim3(scale, part.poses[0, :3, :3], part.poses[0, :3, 3])  # submap frame (camera 0) -> world
+    return store, truth
+
+
+def test_a_revisit_is_registered_from_images_and_another_place_is_not(passes):
+    store, truth = passes
+    assert available(store, 1, 0) and not available(store, 1, 7)
+    bounds = LoopBounds(0.7, np.inf, 180.0)
+    r = register_by_images(1, 0, store, truth[1], truth[0], bounds, ImageLoopConfig())
+    assert r.accepted, r.reason
+    assert r.guess == "images" and r.overlap >= 0.5 and r.information is not None
+    E = sim3_inverse(sim3_inverse(truth[0]) @ truth[1]) @ r.T_match_query  # error against the truth
+    s, R, t = decompose_sim3(E)
+    assert abs(np.log(s)) < 0.03 and np.degrees(np.arccos((np.trace(R) - 1) / 2)) < 1.0
+    assert np.linalg.norm(truth[0][:3, :3] @ t) < 0.2  # metres, at the match's origin
+    far = register_by_images(2, 0, store, truth[2], truth[0], bounds, ImageLoopConfig())
+    assert not far.accepted and far.reason.startswith("images:")
+    tight = register_by_images(1, 0, store, truth[1] @ make_sim3(1.0, np.eye(3), np.array([5.0, 0, 0])), truth[0],
+                               LoopBounds(0.7, 1.0, 180.0), ImageLoopConfig())
+    assert not tight.accepted and "odometry allows" in tight.reason  # the drift bounds still apply

@@ -132,6 +132,22 @@ def test_block_loop_revisits_from_the_opposite_direction():
     np.testing.assert_allclose(P[:, 2], 1.6)
 
 
+def test_laps_revisit_the_start_in_the_same_direction():
+    from vggt_slam_pp.synthetic import laps
+
+    traj = laps(700, laps=1.4, lane_change=1.0)
+    P, fwd = traj.positions, traj.poses[:, :3, 2]
+    n_lap = int(700 / 1.4)
+    start, again = np.arange(0, n_lap), np.arange(n_lap + 20, 700)
+    d = np.linalg.norm(P[again, None, :2] - P[None, start, :2], axis=2)
+    j = d.argmin(axis=1)
+    assert np.all(d[np.arange(len(again)), j] < 1.6)  # the second lap passes the start again, a lane further out
+    assert np.all(d[np.arange(len(again)), j] > 0.5)
+    assert np.all(np.sum(fwd[again] * fwd[start[j]], axis=1) > 0.95)  # ... in the same direction
+    with pytest.raises(SyntheticError):
+        laps(10, laps=0.0)
+
+
 def test_figure8_crosses_itself():
     traj = figure8(400, size=40.0)
     near = np.nonzero(np.linalg.norm(traj.positions[:, :2], axis=1) < 1.0)[0]

@@ -366,6 +366,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                            sequences=args.sequence or None, deterministic=args.deterministic,
                                            progress=lambda name: print(f"{name} ...", file=sys.stderr))
         summary = _frontend_table(result)
+    elif args.suite == "loops" and args.backbone == "colmap":
+        result = benchmarks.bench_loops_colmap(workdir=str(args.workdir or "runs/bench_loops_colmap"), seed=args.seed,
+                                               progress=lambda name: print(f"scenario {name} ...", file=sys.stderr))
+        summary = _loops_table(result)
     elif args.suite == "loops":
         result = benchmarks.bench_loops(trajectories=args.trajectory, frames=args.frames,
                                         workdir=str(args.workdir or "runs/bench_loops"),
@@ -450,19 +454,23 @@ def _frontend_table(result: dict) -> str:
 def _loops_table(result: dict) -> str:
     head = (f"{'scenario':<12}{'submaps':>8}{'ATE odo':>9}{'drift':>7}{'ATE final':>10}{'reduct.':>8}{'loops':>6}{'false':>6}"
             f"{'s/submap':>9}{'fps on':>8}{'fps off':>8}{'RSS MiB':>8}")
-    rows = [f"simulated backbone, {result.get('noise', 'default')} noise; drift: odometry ATE in % of the path", head]
+    colmap = result.get("backbone") == "colmap"
+    rows = ["colmap backbone on rendered images (loops from images)" if colmap else
+            f"simulated backbone, {result.get('noise', 'default')} noise", "drift: odometry ATE in % of the path", head]
     for name, r in result["scenarios"].items():
         if "skipped" in r:
             rows.append(f"{name:<12}skipped: {r['skipped']}")
             continue
         drift = f"{r['drift_pct_path']:.2f}%" if r.get("drift_pct_path") is not None else "-"
+        fps = (f"{r['fps']:>8.1f}{'-':>8}{'-':>8}" if colmap else f"{r['frontend_fps_backend_on']:>8.1f}"
+               f"{r['frontend_fps_backend_off']:>8.1f}{r['peak_rss_mb']:>8.0f}")
         rows.append(f"{name:<12}{r['submaps']:>8}{r['ate_odometry']:>9.3f}{drift:>7}{r['ate_final']:>10.3f}"
                     f"{100 * r['ate_reduction']:>7.0f}%{r['loops_accepted']:>6}{r['false_loops']:>6}"
-                    f"{r['backend_s_per_submap']:>9.3f}{r['frontend_fps_backend_on']:>8.1f}"
-                    f"{r['frontend_fps_backend_off']:>8.1f}{r['peak_rss_mb']:>8.0f}")
-    rows.append(f"mean ATE reduction {100 * (result['mean_ate_reduction'] or 0):.0f} % (target >= 50 %), false loops "
-                f"{result['false_loops']} (target 0), lowest fps ratio on/off {result['min_fps_ratio']:.2f} "
-                "(target >= 0.9)")
+                    f"{r['backend_s_per_submap']:>9.3f}{fps}")
+    target = result["targets"]["mean_ate_reduction"]
+    rows.append(f"mean ATE reduction {100 * (result['mean_ate_reduction'] or 0):.0f} % (target >= {100 * target:.0f} %), "
+                f"false loops {result['false_loops']} (target 0)" + ("" if colmap else
+                f", lowest fps ratio on/off {result['min_fps_ratio']:.2f} (target >= 0.9)"))
     return "\n".join(rows)
 
 
@@ -624,6 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops, registration: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],
                    help="loops: also drive a camera along this trajectory file (TUM, KITTI or EuRoC); repeatable")
+    b.add_argument("--backbone", choices=("simulated", "colmap"), default="simulated",
+                   help="loops: colmap runs the whole image path (images -> SfM submaps -> DEM -> loops from "
+                        "images) on rendered revisits, laps of a block (slow: minutes per scenario)")
     b.add_argument("--fps-repeats", type=int, default=3,
                    help="loops: runs with and without the back-end per scenario for the fps medians")
     b.add_argument("--noise", choices=NOISE_PROFILES, default="default",

@@ -21,7 +21,7 @@ from vggt_slam_pp.io.trajectory import Trajectory, detect_format, read_trajector
 
 log = logging.getLogger(__name__)
 
-__all__ = ["look_along", "figure8", "block_loop", "from_trajectory_file", "resample_path", "SCENES",
+__all__ = ["look_along", "figure8", "block_loop", "laps", "from_trajectory_file", "resample_path", "SCENES",
            "EUROC_T_BODY_CAM0"]
 
 # Body (IMU) -> cam0 extrinsic of the EuRoC visual-inertial sensor (cam0/sensor.yaml, identical across
@@ -130,6 +130,34 @@ def block_loop(n_frames: int = 300, length: float = 60.0, width: float = 40.0, c
     return Trajectory(_timestamps(n_frames, fps), look_along(pos, np.c_[tang, np.zeros(n_frames)], pitch_deg))
 
 
+def laps(n_frames: int = 300, length: float = 60.0, width: float = 40.0, corner_radius: float = 6.0,
+         laps: float = 1.4, lane_change: float = 1.0, height: float = 1.6, fps: float = 10.0,
+         pitch_deg: float = -5.0) -> Trajectory:
+    """Round a ``length x width`` block counter-clockwise ``laps`` times (the same direction every time,
+    ``lane_change`` metres further out on each new lap, reached gradually): revisits that see the same
+    facades from nearly the same viewpoints, as a camera driven round a block twice does."""
+    if n_frames < 2:
+        raise SyntheticError("a trajectory needs at least 2 frames")
+    Ls, Ws = length - 2 * corner_radius, width - 2 * corner_radius
+    if Ls <= 0 or Ws <= 0:
+        raise SyntheticError("block is smaller than twice its corner radius")
+    if laps <= 0:
+        raise SyntheticError("laps must be positive")
+    q = np.pi / 2
+    lap = [("S", Ls / 2), ("A", corner_radius, q), ("S", Ws), ("A", corner_radius, q), ("S", Ls),
+           ("A", corner_radius, q), ("S", Ws), ("A", corner_radius, q), ("S", Ls / 2)]
+    xy = _turtle(lap, np.array([0.0, -width / 2]), 0.0, 0.05)
+    xy = xy[:-1] if np.allclose(xy[-1], xy[0], atol=1e-6) else xy
+    n_lap = len(xy)
+    k = np.arange(int(np.ceil(laps * n_lap)))
+    # each new lap lies lane_change further out, reached gradually: away from the block's centre (the origin)
+    d = xy[k % n_lap]
+    out = d + d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9) * (lane_change * k / n_lap)[:, None]
+    xy, tang = resample_path(out, n_frames)
+    pos = np.c_[xy, np.full(n_frames, height)]
+    return Trajectory(_timestamps(n_frames, fps), look_along(pos, np.c_[tang, np.zeros(n_frames)], pitch_deg))
+
+
 def from_trajectory_file(
     path: str | Path,
     n_frames: int | None = None,
@@ -196,5 +224,5 @@ def from_trajectory_file(
     return Trajectory(_timestamps(n, fps), poses), style
 
 
-SCENES = {"figure8": figure8, "loop": block_loop}
+SCENES = {"figure8": figure8, "loop": block_loop, "laps": laps}
 """Built-in scenes for ``vggt-slam-pp synth --scene``."""

@@ -810,5 +810,5 @@ def test_drift_bounds_follow_the_shortest_path_through_accepted_loops(tmp_path):
     assert short.max_translation < 0.5 * chain.max_translation and short.max_log_scale < 0.5 * chain.max_log_scale
     m.degraded_edges.add(37)  # 37 -> 38 extrapolated: the short path still carries it
     hops, length, degraded, loops = closer.drift_path(38, 1)
-    assert (hops, loops, degraded) == (2, 1, [10.0])
+    assert (hops, length, loops, degraded) == (2, 20.0, 1, [10.0])
     assert closer.bounds(1, 38).max_translation > short.max_translation + reg.degraded_steps * 10.0 - 1e-9

@@ -74,3 +74,15 @@ def test_a_revisit_is_registered_from_images_and_another_place_is_not(passes):
     tight = register_by_images(1, 0, store, truth[1] @ make_sim3(1.0, np.eye(3), np.array([5.0, 0, 0])), truth[0],
                                LoopBounds(0.7, 1.0, 180.0), ImageLoopConfig())
     assert not tight.accepted and "odometry allows" in tight.reason  # the drift bounds still apply
+
+
+def test_image_loops_can_be_switched_off_from_the_command_line():
+    from vggt_slam_pp.cli.main import build_parser, run_config_from_args
+    from vggt_slam_pp.frontend.backbones.colmap import from_run_config
+
+    parser = build_parser()
+    on = run_config_from_args(parser.parse_args(["run", "--input", "x", "--preset", "photos"]))
+    off = run_config_from_args(parser.parse_args(["run", "--input", "x", "--preset", "photos", "--no-image-loops"]))
+    assert on.backbone.image_features and not off.backbone.image_features
+    pytest.importorskip("pycolmap")
+    assert from_run_config(on, None)._features is not None and from_run_config(off, None)._features is None

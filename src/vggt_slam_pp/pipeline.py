@@ -58,6 +58,8 @@ class BackboneConfig:
     noise: str = "default"  # simulated: "default", "realistic" (monocular drift, 1-3 % of the path) or "zero"
     colmap_matcher: str = "exhaustive"  # colmap: "exhaustive" (all pairs in a submap) or "sequential"
     deterministic: bool = True  # colmap: the mapper on one thread too (bit-identical runs, ~30 % slower; docs/frontend.md)
+    image_features: bool = True  # colmap: keep each submap's feature database for loops from images (about 10 MB
+    # per submap of 16-20 keyframes in run/submaps/; False: loops are registered from points only)
     seed: int = 0
 
 

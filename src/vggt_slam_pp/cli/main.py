@@ -159,6 +159,7 @@ _RUN_FLAGS = {
     "backbone": ("backbone.name", None), "weights": ("backbone.weights", None), "device": ("backbone.device", None),
     "replay": ("backbone.replay_dir", str), "noise": ("backbone.noise", None), "seed": ("backbone.seed", None),
     "matcher": ("backbone.colmap_matcher", None), "deterministic": ("backbone.deterministic", None),
+    "image_loops": ("backbone.image_features", None),
     "tau": ("frontend.keyframes.tau_disparity", None), "submap_size": ("frontend.submap_size", None),
     "overlap": ("frontend.overlap", None), "calibrated": ("calibrated", None),
     "no_save_predictions": ("save_predictions", lambda v: not v), "no_backend": ("backend", lambda v: not v),
@@ -608,6 +609,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--overlap", type=int,
                    help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
                         "max(2, min(4, w/4)) for colmap)")
+    r.add_argument("--image-loops", action=argparse.BooleanOptionalAction, default=None,
+                   help="colmap: register loop candidates from the keyframes' images (default; keeps about 10 MB "
+                        "of features per submap in the run folder); --no-image-loops registers them from points")
     r.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=None,
                    help="colmap: every step on one thread, so that the same input and --seed give bit-identical "
                         "trajectories (default); --no-deterministic runs the mapper multi-threaded (~25 %% faster)")

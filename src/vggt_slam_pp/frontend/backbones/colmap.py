@@ -431,4 +431,4 @@ def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
     """The ``colmap`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
     b = config.backbone
     return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
-                          deterministic=b.deterministic)
+                          deterministic=b.deterministic, keep_features=b.image_features)

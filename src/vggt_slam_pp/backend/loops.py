@@ -129,7 +129,10 @@ class LoopCloser:
         for match, score, margin, source in self.candidates(sid, res):
             if self.config.images.enabled and image_loops.available(m.store, sid, match):
                 # a sparse backbone's submaps: their images verify a loop, their few shared points cannot
-                if by_images >= self.config.images.max_candidates:
+                if by_images >= self.config.images.max_candidates:  # each costs seconds: kept with its reason
+                    self.loops.append(LoopResult(sid, match, False, f"not registered: {by_images} registrations "
+                                                 "from images per query", None, None, 0.0, 0.0, np.inf, 0, score,
+                                                 "images", source=source))
                     continue
                 by_images += 1
                 r = image_loops.register_by_images(

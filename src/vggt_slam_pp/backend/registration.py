@@ -128,7 +128,10 @@ class LoopResult:
     residual: float  # world units
     planar_inliers: int
     score: float
-    guess: str  # "odometry", "dem_search" or "planar"
+    guess: str  # the initial guess that won: "odometry", "planar", "search_k"; "images" for a loop registered
+    # from images (backend/image_loops.py), whose overlap / structure_overlap are the shares of the query's /
+    # match's keyframes registered, planar_inliers and agreement_cells the verified matches across, and
+    # agreement 1 - the relative camera-centre residual
     constraint_ratio: float = 0.0  # weakest / strongest in-plane translation information of the ICP
     information: np.ndarray | None = None  # 7x7, in the pose graph's tangent of T_match_query
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"

@@ -164,6 +164,14 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
     code, out, _ = _run(capsys, "bench", "covisibility", "--seed", 3, "--json")
     assert code == 0 and seen["covisibility"]["seed"] == 3 and json.loads(out)["scenes"] == {}
     assert _run(capsys, "bench", "loops", "--json")[0] == 0 and seen["loops"]["seed"] == 0
+    row = {"submaps": 15, "ate_odometry": 0.2, "drift_pct_path": 0.08, "ate_final": 0.1, "ate_reduction": 0.5,
+           "loops_accepted": 3, "false_loops": 0, "footprint_false_loops": 1, "backend_s_per_submap": 9.0, "fps": 4.0}
+    images = {"scenarios": {"laps": row}, "backbone": "colmap", "mean_ate_reduction": 0.5, "false_loops": 0,
+              "targets": {"mean_ate_reduction": 0.3}}
+    monkeypatch.setattr(benchmarks, "bench_loops_colmap", fake("colmap", images))
+    code, out, err = _run(capsys, "bench", "loops", "--backbone", "colmap", "--seed", 2)
+    assert code == 0 and seen["colmap"]["seed"] == 2 and "loops from images" in out + err
+    assert "target >= 30 %" in out + err and "footprint rule of the simulated bench: 1" in out + err
 
 
 def test_bench_frontend_reports_missing_data_as_skipped(tmp_path, capsys):

@@ -86,3 +86,28 @@ def test_image_loops_can_be_switched_off_from_the_command_line():
     assert on.backbone.image_features and not off.backbone.image_features
     pytest.importorskip("pycolmap")
     assert from_run_config(on, None)._features is not None and from_run_config(off, None)._features is None
+
+
+def test_the_colmap_bench_calls_a_loop_false_by_where_it_puts_the_query_cameras(tmp_path):
+    """``bench loops --backbone colmap`` judges a loop by the query's cameras it places, each submap's frame
+    fitted to the ground truth by its own cameras (any scale): the true relative pose is 0 m off, one
+    shifted by 2 m is 2 m off."""
+    from vggt_slam_pp.benchmarks import _loop_camera_errors
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+
+    write_sequence(make_scene("figure8", frames=12, width=48, height=36, seed=1), tmp_path / "seq")
+    source = open_source(tmp_path / "seq")
+    idx, gt = source.frame_ground_truth()
+    nodes, frames = [], {0: [0, 1, 2, 3], 1: [7, 8, 9, 10]}
+    frame_of = {0: 0.5, 1: 2.0}  # each submap in its own scale (as SfM submaps are)
+    for sid, fr in frames.items():
+        T_sub_world = sim3_inverse(make_sim3(frame_of[sid], gt.poses[fr[0], :3, :3], gt.poses[fr[0], :3, 3]))
+        centres = [(T_sub_world @ np.r_[gt.poses[f, :3, 3], 1.0])[:3].tolist() for f in fr]
+        nodes.append({"id": sid, "frames": fr, "camera_centers": centres})
+    truth = sim3_inverse(make_sim3(0.5, gt.poses[0, :3, :3], gt.poses[0, :3, 3])) @ make_sim3(
+        2.0, gt.poses[7, :3, :3], gt.poses[7, :3, 3])  # T_0_1
+    off = make_sim3(1.0, np.eye(3), np.array([2.0 / 0.5, 0.0, 0.0])) @ truth  # 2 m along x in submap 0's units
+    for T, expect in ((truth, 0.0), (off, 2.0)):
+        graph = {"nodes": nodes, "edges": [{"from": 0, "to": 1, "kind": "loop", "T": T.tolist()}]}
+        assert _loop_camera_errors(source, graph)[(1, 0)] == pytest.approx(expect, abs=1e-6)

@@ -99,10 +99,11 @@ def test_the_colmap_bench_calls_a_loop_false_by_where_it_puts_the_query_cameras(
     write_sequence(make_scene("figure8", frames=12, width=48, height=36, seed=1), tmp_path / "seq")
     source = open_source(tmp_path / "seq")
     idx, gt = source.frame_ground_truth()
+    assert idx.tolist() == list(range(12))  # ground-truth row = frame index
     nodes, frames = [], {0: [0, 1, 2, 3], 1: [7, 8, 9, 10]}
-    frame_of = {0: 0.5, 1: 2.0}  # each submap in its own scale (as SfM submaps are)
+    scale_of = {0: 0.5, 1: 2.0}  # each submap in its own scale (as SfM submaps are)
     for sid, fr in frames.items():
-        T_sub_world = sim3_inverse(make_sim3(frame_of[sid], gt.poses[fr[0], :3, :3], gt.poses[fr[0], :3, 3]))
+        T_sub_world = sim3_inverse(make_sim3(scale_of[sid], gt.poses[fr[0], :3, :3], gt.poses[fr[0], :3, 3]))
         centres = [(T_sub_world @ np.r_[gt.poses[f, :3, 3], 1.0])[:3].tolist() for f in fr]
         nodes.append({"id": sid, "frames": fr, "camera_centers": centres})
     truth = sim3_inverse(make_sim3(0.5, gt.poses[0, :3, :3], gt.poses[0, :3, 3])) @ make_sim3(

@@ -112,3 +112,17 @@ def test_the_colmap_bench_calls_a_loop_false_by_where_it_puts_the_query_cameras(
     for T, expect in ((truth, 0.0), (off, 2.0)):
         graph = {"nodes": nodes, "edges": [{"from": 0, "to": 1, "kind": "loop", "T": T.tolist()}]}
         assert _loop_camera_errors(source, graph)[(1, 0)] == pytest.approx(expect, abs=1e-6)
+
+
+def test_a_submap_stored_again_drops_the_features_of_an_earlier_run(tmp_path):
+    store = SubmapStore(tmp_path / "s")
+    store.put(3, np.zeros((5, 3)))
+    db = tmp_path / "f.db"
+    db.write_bytes(b"features")
+    store.put_features(3, db, np.repeat(np.eye(4)[None], 2, 0), np.array([True, False]), np.array([7, 8]))
+    got = store.get_features(3)
+    assert got is not None and got[0].read_bytes() == b"features" and not db.exists()
+    assert got[1]["frame_indices"].tolist() == [7, 8] and got[1]["valid"].tolist() == [True, False]
+    assert not list((tmp_path / "s").glob("*.tmp*"))
+    store.put(3, np.zeros((5, 3)))  # a new run into the same folder: its own submap 3 has no features
+    assert store.get_features(3) is None and not available(store, 3, 3)

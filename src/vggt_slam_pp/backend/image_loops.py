@@ -114,6 +114,53 @@ def _anchor(database_path: Path, cams: dict[str, np.ndarray], names: dict, work:
     return out
 
 
+def _match_across(db_q: Path, db_m: Path, work: Path, config: ImageLoopConfig) -> tuple[Path, int] | None:
+    """Merge the two submaps' databases into ``work/joint.db`` and match the image pairs across them; returns
+    it and the verified matches across, or None when the two hold an image of the same name (a keyframe in
+    both submaps, cut-off frames included)."""
+    import pycolmap
+
+    names = []
+    for db in (db_q, db_m):
+        d = pycolmap.Database.open(db)
+        try:
+            names.append({im.name for im in d.read_all_images()})
+        finally:
+            d.close()
+    q_names, m_names = names
+    if q_names & m_names:
+        return None
+    merged = work / "joint.db"
+    opened = []
+    try:
+        for path in (db_q, db_m, merged):
+            opened.append(pycolmap.Database.open(path))
+        pycolmap.Database.merge(*opened)
+        images = {im.image_id: im.name for im in opened[2].read_all_images()}
+    finally:
+        for d in opened:
+            d.close()
+    pairs = [(x, y) for x in images.values() if x in q_names for y in images.values() if y in m_names]
+    (work / "pairs.txt").write_text("".join(f"{x} {y}\n" for x, y in pairs))
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    matching.num_threads = config.threads
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(work / "pairs.txt")
+    pycolmap.match_image_pairs(merged, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    database = pycolmap.Database.open(merged)
+    try:
+        pair_ids, geoms = database.read_two_view_geometries()
+    finally:
+        database.close()
+    cross = 0
+    for pid, geom in zip(pair_ids, geoms, strict=True):
+        i, j = pycolmap.pair_id_to_image_pair(pid)
+        if (images.get(i) in q_names) != (images.get(j) in q_names):
+            cross += len(geom.inlier_matches)
+    return merged, cross
+
+
 def _cameras(store: SubmapStore, sid: int) -> tuple[Path, dict[str, np.ndarray]] | None:
     found = store.get_features(sid)
     if found is None or not np.isfinite(found[1]["T_cam_submap"]).all():
@@ -152,40 +199,15 @@ def register_by_images(query: int, match: int, store: SubmapStore, T_world_query
         for k, (i, ok) in enumerate(zip(cams["frame_indices"], cams["valid"], strict=True)):
             if ok:
                 names[f"{int(i):08d}.png"] = (side, k)
-    shared = {f"{int(i):08d}.png" for i in cams_q["frame_indices"]} & {f"{int(i):08d}.png" for i in cams_m["frame_indices"]}
-    if shared:
-        return reject("the two submaps share keyframes")
     work = Path(tempfile.mkdtemp(prefix="vggt_slam_imageloop_"))
     try:
-        merged = work / "joint.db"
-        a, b = pycolmap.Database.open(db_q), pycolmap.Database.open(db_m)
-        out = pycolmap.Database.open(merged)
         try:
-            pycolmap.Database.merge(a, b, out)
-            images = {im.image_id: im.name for im in out.read_all_images()}
-        finally:
-            for d in (a, b, out):
-                d.close()
-        q_names = {f"{int(i):08d}.png" for i in cams_q["frame_indices"]}
-        pairs = [(x, y) for x in images.values() if x in q_names for y in images.values() if y not in q_names]
-        (work / "pairs.txt").write_text("".join(f"{x} {y}\n" for x, y in pairs))
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.use_gpu = False
-        matching.num_threads = config.threads
-        pairing = pycolmap.ImportedPairingOptions()
-        pairing.match_list_path = str(work / "pairs.txt")
-        pycolmap.match_image_pairs(merged, matching_options=matching, pairing_options=pairing,
-                                   device=pycolmap.Device.cpu)
-        database = pycolmap.Database.open(merged)
-        try:
-            pair_ids, geoms = database.read_two_view_geometries()
-        finally:
-            database.close()
-        cross = 0
-        for pid, geom in zip(pair_ids, geoms, strict=True):
-            i, j = pycolmap.pair_id_to_image_pair(pid)
-            if (images.get(i) in q_names) != (images.get(j) in q_names):
-                cross += len(geom.inlier_matches)
+            found = _match_across(db_q, db_m, work, config)
+        except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime and value errors
+            return reject(f"images: matching across failed ({exc})")
+        if found is None:
+            return reject("the two submaps share keyframes")
+        merged, cross = found
         if cross < config.min_cross_inliers:
             return reject(f"images: {cross} verified matches between the two submaps < {config.min_cross_inliers}",
                           planar_inliers=cross)

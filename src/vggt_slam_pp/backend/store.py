@@ -34,6 +34,8 @@ class SubmapStore:
     def put(self, submap_id: int, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """Store ``points`` [N,3] and, when given, their ``colors`` [N,3] (uint8 RGB)."""
         pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        for stale in (self.features_path(submap_id), self.cameras_path(submap_id)):  # an earlier run's, if any
+            stale.unlink(missing_ok=True)
         if colors is not None:
             rgb = np.ascontiguousarray(colors, np.uint8).reshape(-1, 3)
             if len(rgb) != len(pts):
@@ -72,7 +74,9 @@ class SubmapStore:
         with open(tmp, "wb") as f:
             np.savez(f, T_cam_submap=np.asarray(T_cam_submap, np.float64), valid=np.asarray(valid, bool),
                      frame_indices=np.asarray(frame_indices, np.int64))
-        shutil.move(str(database), self.features_path(submap_id))
+        tmp_db = self.folder / f"{submap_id:06d}.features.tmp.db"
+        shutil.move(str(database), tmp_db)  # another file system: copied, so complete only once renamed
+        tmp_db.replace(self.features_path(submap_id))
         tmp.replace(self.cameras_path(submap_id))
 
     def get_features(self, submap_id: int) -> tuple[Path, dict[str, np.ndarray]] | None:

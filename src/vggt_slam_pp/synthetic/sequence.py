@@ -93,8 +93,9 @@ def write_sequence(
     images that the loop-closure benchmarks were measured on.
 
     An interrupted render resumes: ``render.json`` (written first) names what is rendered, and when it
-    matches, frames whose colour and depth images are both on disk are kept (the last of them is
-    rendered again: it may be the one that was being written).
+    matches, the leading frames whose colour and depth images are both on disk are kept (the last of them
+    is rendered again: it may be the one that was being written); the images of a render of anything else
+    are removed first.
 
     Returns:
         a summary: frames, seconds spent rendering and writing, seconds per frame.
@@ -105,7 +106,8 @@ def write_sequence(
     max_depth = max_depth or (80.0 if scene.world.style == "outdoor" else 15.0)
     renderer = Renderer(scene.world, scene.camera, max_depth=max_depth, aperiodic=aperiodic)
     traj = scene.trajectory
-    done = _resumable(out, _fingerprint(scene, depth_scale, max_depth, aperiodic))
+    done = _resumable(out, _fingerprint(scene, depth_scale, max_depth, aperiodic),
+                      [f"{ts:.6f}.png" for ts in traj.timestamps])
     rgb_lines = ["# color images", "# timestamp filename"]
     depth_lines = ["# depth maps", "# timestamp filename"]
     t0 = time.perf_counter()
@@ -146,7 +148,8 @@ def _fingerprint(scene: SyntheticScene, depth_scale: float, max_depth: float, ap
     """What a rendered frame depends on (the world, the camera, the poses and the rendering options)."""
     import hashlib
 
-    poses = np.ascontiguousarray(scene.trajectory.poses, np.float64).tobytes()
+    poses = (np.ascontiguousarray(scene.trajectory.poses, np.float64).tobytes()
+             + np.ascontiguousarray(scene.trajectory.timestamps, np.float64).tobytes())
     w = scene.world
     world = json.dumps({"style": w.style, "seed": w.seed, "ground_color": np.asarray(w.ground_color).tolist(),
                         "solids": [s.to_dict() for s in w.solids]}, sort_keys=True).encode()
@@ -157,16 +160,21 @@ def _fingerprint(scene: SyntheticScene, depth_scale: float, max_depth: float, ap
             "poses_sha1": hashlib.sha1(poses).hexdigest(), "world_sha1": hashlib.sha1(world).hexdigest()}
 
 
-def _resumable(out: Path, fingerprint: dict) -> int:
-    """How many leading frames of an earlier render of the same ``fingerprint`` into ``out`` are on disk
-    (0 when there was none or it was of something else); writes the fingerprint for this render."""
+def _resumable(out: Path, fingerprint: dict, names: list[str]) -> int:
+    """How many leading frames (file ``names``, in order) of an earlier render of the same ``fingerprint``
+    into ``out`` have both images on disk; an earlier render of something else is cleared (0). Writes the
+    fingerprint for this render."""
     path = out / "render.json"
     try:
         same = json.loads(path.read_text()) == fingerprint
     except (OSError, ValueError):
         same = False
-    atomic_write_text(path, json.dumps(fingerprint, indent=1))
     if not same:
-        return 0
-    names = {p.name for p in (out / "rgb").glob("*.png")} & {p.name for p in (out / "depth").glob("*.png")}
-    return len(names)
+        for folder in ("rgb", "depth"):
+            for old in (out / folder).glob("*.png"):
+                old.unlink()
+    atomic_write_text(path, json.dumps(fingerprint, indent=1))
+    done = 0
+    while done < len(names) and all((out / folder / names[done]).is_file() for folder in ("rgb", "depth")):
+        done += 1
+    return done

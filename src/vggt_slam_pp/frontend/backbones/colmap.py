@@ -115,7 +115,7 @@ class ColmapBackbone(Backbone):
         self.camera_model = camera_model
         self.fix_anchor = fix_anchor
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
-        self._pending: list[tuple[tuple[int, ...], object]] = []  # this submap's attempts: (frames, rec)
+        self._pending: list[tuple[tuple[int, ...], object, str | None]] = []  # attempts: (frames, rec, features)
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
@@ -131,10 +131,15 @@ class ColmapBackbone(Backbone):
 
     def committed(self, frame_indices) -> None:
         kept = tuple(int(i) for i in frame_indices)
-        for frames, rec in reversed(self._pending):
+        chosen = None
+        for k in range(len(self._pending) - 1, -1, -1):
+            frames, rec, _ = self._pending[k]
             if frames[:len(kept)] == kept:
-                self._previous = rec
+                self._previous, chosen = rec, k
                 break
+        for k, (_, _, features) in enumerate(self._pending):  # the other attempts' features are not needed
+            if k != chosen and features is not None:
+                Path(features).unlink(missing_ok=True)
         self._pending = []
 
     def describe(self) -> dict:
@@ -343,9 +348,10 @@ class ColmapBackbone(Backbone):
             rec, names = self._reconstruct(work, frames) if S >= 2 else (None, [])
             pred = self._to_prediction(rec, names, frames)
             if rec is not None and pred.valid.sum() >= 2:
-                self._pending.append((tuple(int(f.index) for f in frames), rec))
-                if self._features is not None:
-                    pred.info["features"] = str(self._keep_features(work / "database.db", rec))
+                features = str(self._keep_features(work / "database.db", rec)) if self._features is not None else None
+                if features is not None:
+                    pred.info["features"] = features
+                self._pending.append((tuple(int(f.index) for f in frames), rec, features))
             return pred
         finally:
             if self.keep_workdir is not None:
@@ -431,4 +437,4 @@ def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
     """The ``colmap`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
     b = config.backbone
     return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
-                          deterministic=b.deterministic, keep_features=b.image_features)
+                          deterministic=b.deterministic, keep_features=b.image_features and config.backend)

@@ -43,3 +43,79 @@ def test_same_seed_gives_byte_identical_trajectories(tmp_path, straight):
     for name in ("keyframes_odometry.txt", "frames_odometry.txt"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     assert a["camera"]["source"] == "given"
+
+
+def _fold(rec, from_name: str, degrees: float = 8.0) -> None:
+    """Turn the cameras of ``rec`` from image ``from_name`` on by ``degrees`` about their own y axis: a
+    reconstruction that fits its points but not its images' matches (a fold)."""
+    import numpy as np
+    import pycolmap
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("y", degrees, degrees=True).as_matrix()
+    for im in rec.images.values():
+        if im.has_pose and im.name >= from_name:
+            T = im.cam_from_world().matrix()
+            rec.frames[im.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R @ T[:, :3]),
+                                                                     np.asarray(R @ T[:, 3]))
+
+
+def _folding(monkeypatch, attempts):
+    """Make the mapping attempts numbered in ``attempts`` come out folded from their middle image on."""
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+
+    original = ColmapBackbone._map
+
+    def mapped(self, db, images, out, angle, seed_offset, attempt, refine):
+        rec = original(self, db, images, out, angle, seed_offset, attempt, refine)
+        if rec is not None and attempt in attempts:
+            names = sorted(im.name for im in rec.images.values() if im.has_pose)
+            _fold(rec, names[len(names) // 2])
+        return rec
+
+    monkeypatch.setattr(ColmapBackbone, "_map", mapped)
+
+
+def _relative_rotation_errors_deg(pred, source):
+    import numpy as np
+
+    from vggt_slam_pp.geometry.lie import se3_inverse
+
+    gt = source.ground_truth().poses
+    out = []
+    for a, b in zip(range(len(pred.frame_indices)), range(1, len(pred.frame_indices)), strict=False):
+        if not (pred.valid[a] and pred.valid[b]):
+            continue
+        est = pred.T_cam_submap[b] @ se3_inverse(pred.T_cam_submap[a])
+        true = se3_inverse(gt[pred.frame_indices[b]]) @ gt[pred.frame_indices[a]]
+        R = est[:3, :3].T @ true[:3, :3]
+        out.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    return np.array(out)
+
+
+def test_a_folded_reconstruction_is_found_by_its_own_matches_and_mapped_again(monkeypatch, straight):
+    """Fault test: the first mapping attempt comes out folded (its later cameras turned 8 deg; every point
+    still reprojects). The backbone finds the contradiction with the keyframes' verified matches, maps
+    again, and keeps the sound attempt."""
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+
+    _folding(monkeypatch, attempts={0})
+    frames = [straight[i] for i in range(0, 36, 3)]
+    pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
+    assert pred.info["folded_attempts"] == 1 and "folded_pairs" not in pred.info
+    assert pred.valid.all()
+    assert _relative_rotation_errors_deg(pred, straight).max() < 1.0
+
+
+def test_a_submap_folded_in_every_attempt_keeps_only_its_sound_part(monkeypatch, straight):
+    """Fault test: every attempt folded. The keyframes from the contradicted pair on are marked unregistered
+    (the front-end starts the next submap with them) and the pair is reported; what is kept is sound."""
+    from vggt_slam_pp.frontend.backbones.colmap import ATTEMPTS, ColmapBackbone
+
+    _folding(monkeypatch, attempts=set(range(len(ATTEMPTS))))
+    frames = [straight[i] for i in range(0, 36, 3)]
+    pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
+    first, second = pred.info["folded_pairs"][0][:2]
+    assert [f.index for f in frames].index(second) == 6 and pred.info["folded_attempts"] == len(ATTEMPTS)
+    assert pred.valid[:6].all() and not pred.valid[6:].any()
+    assert _relative_rotation_errors_deg(pred, straight).max() < 1.0

@@ -200,6 +200,12 @@ def _report(source, config, result: FrontendResult | None, stats: RunStats) -> d
                            zip(sm.frame_indices, sm.prediction.valid, strict=True) if not v],
         "points_per_submap": [sm.prediction.info.get("points_after_filter", sm.prediction.num_points())
                               for sm in result.submaps],
+        # colmap: submaps whose mapping attempts contradicted their own matches (folded; retried), and the
+        # keyframe pairs [first, second, agree, best, degrees] still contradicted in the kept reconstruction
+        "folded_attempts": {str(sm.id): sm.prediction.info["folded_attempts"] for sm in result.submaps
+                            if sm.prediction.info.get("folded_attempts")},
+        "folded_pairs": {str(sm.id): sm.prediction.info["folded_pairs"] for sm in result.submaps
+                         if sm.prediction.info.get("folded_pairs")},
     })
     gt_pair = source.frame_ground_truth()
     if gt_pair is not None:

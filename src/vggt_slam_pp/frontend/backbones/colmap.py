@@ -51,6 +51,7 @@ import cv2
 import numpy as np
 
 from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.frontend.backbones.colmap_checks import FoldCheckConfig, PairCheck, check_pairs, inconsistent
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -61,8 +62,42 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# mapping attempts while keyframes stay unregistered: (initial triangulation angle in degrees, seed offset)
-ATTEMPTS = ((16.0, 0), (4.0, 0), (16.0, 1), (2.0, 0), (8.0, 2))
+# mapping attempts while keyframes stay unregistered or the reconstruction is folded: (initial triangulation
+# angle in degrees, seed offset) of COLMAP's incremental mapper; an angle of None is its global mapper (GLOMAP)
+ATTEMPTS = ((16.0, 0), (None, 0), (4.0, 0), (16.0, 1), (2.0, 0), (8.0, 2))
+
+
+def _describe(folds: list[PairCheck]) -> str:
+    worst = max(folds, key=lambda c: c.rotation_deg)
+    return (f"{len(folds)} keyframe pair(s) from {folds[0].first[:-4]} disagree with their matches, "
+            f"up to {worst.rotation_deg:.1f} deg ({worst.agree:.0%} of matches explained, two-view {worst.best:.0%})")
+
+
+def _better(rec, folds: list[PairCheck], best, best_folds: list[PairCheck]) -> bool:
+    """Whether reconstruction ``rec`` beats ``best``: free of folds first, then more registered images, then
+    fewer inconsistent pairs."""
+    def key(r, f):
+        return (not f, r.num_reg_images(), -len(f))
+    return key(rec, folds) > key(best, best_folds)
+
+
+# how far the full camera model may move from the constrained estimate it is refined from (``_full_model``):
+# focal lengths (relative), their ratio, and the principal point from the image centre (fraction of each side)
+FULL_MODEL_TOLERANCE = {"focal": 0.05, "aspect": 0.03, "principal_point": 0.05}
+
+
+def _far_from(params: list[float], f: float, width: int, height: int) -> str:
+    """Why OPENCV ``params`` are too far from a constrained estimate with focal ``f`` (FULL_MODEL_TOLERANCE),
+    or ""."""
+    fx, fy, cx, cy = params[:4]
+    tol = FULL_MODEL_TOLERANCE
+    if abs(0.5 * (fx + fy) / f - 1) > tol["focal"]:
+        return f"focal {0.5 * (fx + fy):.1f} px, {f:.1f} px constrained"
+    if abs(fx / fy - 1) > tol["aspect"]:
+        return f"focal lengths {fx:.1f} and {fy:.1f} px"
+    if abs(cx - width / 2) > tol["principal_point"] * width or abs(cy - height / 2) > tol["principal_point"] * height:
+        return f"principal point ({cx:.0f}, {cy:.0f}) moved from the centre"
+    return ""
 
 
 def intrinsics_sane(params, width: int, height: int, model: str = "OPENCV") -> str:
@@ -92,7 +127,9 @@ class ColmapBackbone(Backbone):
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
                  freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
                  anchored: bool = True, max_image_size: int = 1600, refine_principal_point: bool = True,
-                 camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True) -> None:
+                 camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True,
+                 fold_check: FoldCheckConfig | None = FoldCheckConfig(), mapper: str = "incremental",
+                 estimate_model: str | None = "RADIAL") -> None:
         import weakref
 
         import pycolmap
@@ -104,6 +141,9 @@ class ColmapBackbone(Backbone):
         if matcher not in ("sequential", "exhaustive"):
             raise ValueError(f"unknown matcher {matcher!r}")
         self.matcher = matcher
+        if mapper not in ("incremental", "global"):
+            raise ValueError(f"unknown mapper {mapper!r}")
+        self.mapper = mapper  # the first attempt of a submap that is not anchored (ATTEMPTS)
         self.max_features = max_features
         self.overlap = overlap
         self.num_threads = num_threads
@@ -113,7 +153,14 @@ class ColmapBackbone(Backbone):
         self.max_image_size = max_image_size
         self.refine_principal_point = refine_principal_point
         self.camera_model = camera_model
+        # an unknown camera is first estimated with this constrained model, then refined to ``camera_model``
+        # (``_full_model``); None estimates ``camera_model`` directly
+        self.estimate_model = estimate_model
+        self._staged = False  # whether the submap being reconstructed estimates the camera in two stages
         self.fix_anchor = fix_anchor
+        self.fold_check = fold_check  # None: reconstructions are not checked against their matches
+        self._folds: list[PairCheck] = []  # the inconsistent pairs of the submap being reconstructed
+        self._folded_attempts = 0  # of its mapping attempts, how many were folded
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
         self._pending: list[tuple[tuple[int, ...], object, str | None]] = []  # attempts: (frames, rec, features)
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
@@ -159,6 +206,9 @@ class ColmapBackbone(Backbone):
         elif self._estimated is not None and self._estimated[0] == (frame.width, frame.height):
             # uncalibrated: start from the intrinsics the previous submap estimated (still refined)
             reader.camera_params = ",".join(str(float(v)) for v in self._estimated[1])
+        elif self.estimate_model and self.estimate_model != self.camera_model:
+            reader.camera_model = self.estimate_model  # estimated in two stages (_full_model)
+            self._staged = True
         return reader
 
     def _reconstruct(self, work: Path, frames: Sequence[Frame]):
@@ -170,6 +220,7 @@ class ColmapBackbone(Backbone):
         for name, f in zip(names, frames, strict=True):
             cv2.imwrite(str(images / name), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
         db = work / "database.db"
+        self._staged = False
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.use_gpu = False
         extraction.num_threads = 1  # deterministic (module docstring)
@@ -192,34 +243,97 @@ class ColmapBackbone(Backbone):
         given = self.calibrated and frames[0].intrinsics is not None
         best, attempt = None, 0
         refine = not (given or (self.freeze_estimated and self._estimated is not None))
-        self._anchor_names = []
+        self._anchor_names, self._folds, self._folded_attempts = [], [], 0
         if self.anchored and not refine:
             best = self._map_anchored(db, images, work, names)
             if best is not None and best.num_reg_images() == len(frames):
-                return best, names
-            if best is not None:
+                folds = self._check(best, db)
+                if not folds:
+                    return best, names
+                self._folded_attempts += 1
+                log.warning("colmap: the anchored reconstruction of keyframes %d..%d contradicts its own matches "
+                            "(%s); mapping the submap on its own", *self._span, _describe(folds))
+            elif best is not None:
                 log.info("colmap: anchored mapping registered %d/%d images; mapping the submap on its own",
                          best.num_reg_images(), len(frames))
             best, self._anchor_names = None, []
-        for angle, seed_offset in ATTEMPTS:
+        best_folds: list[PairCheck] = []
+        attempts = ATTEMPTS if self.mapper == "incremental" else ((None, 0),) + tuple(a for a in ATTEMPTS if a[0])
+        for angle, seed_offset in attempts:
             rec = self._map(db, images, work / f"sparse{attempt}", angle, seed_offset, attempt, refine)
             attempt += 1
-            if rec is not None and (best is None or rec.num_reg_images() > best.num_reg_images()):
-                best = rec
+            folds = self._check(rec, db) if rec is not None else []
+            self._folded_attempts += bool(folds)
+            if rec is not None and (best is None or _better(rec, folds, best, best_folds)):
+                best, best_folds = rec, folds
             registered = 0 if best is None else best.num_reg_images()
-            if registered == len(frames) or (attempt >= 2 and registered >= 0.9 * len(frames)):
+            if not best_folds and (registered == len(frames) or (attempt >= 2 and registered >= 0.9 * len(frames))):
                 break  # a few frames that two attempts could not register are left to the front-end
-            log.info("colmap: %d/%d images registered (init angle %.0f deg, seed +%d); retrying",
-                     registered, len(frames), angle, seed_offset)
+            how = "global mapper" if angle is None else f"init angle {angle:.0f} deg, seed +{seed_offset}"
+            if best_folds:
+                log.warning("colmap: keyframes %d..%d reconstructed folded: %s (%s); retrying",
+                            *self._span, _describe(best_folds), how)
+            else:
+                log.info("colmap: %d/%d images registered (%s); retrying", registered, len(frames), how)
         registered = 0 if best is None else best.num_reg_images()
         if not refine and not given and registered < len(frames) / 2:
             log.warning("colmap: only %d/%d images registered with the estimated camera held fixed; "
                         "re-estimating the intrinsics", registered, len(frames))
             rec = self._map(db, images, work / f"sparse{attempt}", ATTEMPTS[0][0], 0, attempt, True)
             if rec is not None and rec.num_reg_images() > registered:
-                best = rec
+                best, best_folds = rec, self._check(rec, db)
                 self._adopt_camera(rec, len(frames), "re-estimated after a registration collapse")
+        if self._staged and best is not None:
+            best = self._full_model(best)
+        self._folds = best_folds
+        if best_folds:
+            log.warning("colmap: every attempt at keyframes %d..%d is folded; the keyframes from %s on are left "
+                        "unregistered (%s)", *self._span, best_folds[0].second[:-4], _describe(best_folds))
         return best, names
+
+    def _full_model(self, rec):
+        """Stage 2 of estimating the camera: ``rec`` was mapped with the constrained ``estimate_model`` (one
+        focal length, radial distortion, principal point at the image centre); its camera becomes
+        ``camera_model`` (OPENCV) with the same projection, and one bundle adjustment refines every
+        intrinsic from there. The refinement is kept when it is sane and stays near the constrained estimate
+        (``FULL_MODEL_TOLERANCE``); otherwise ``rec`` keeps the constrained estimate, in the full model."""
+        import pycolmap
+
+        cam = next(iter(rec.cameras.values()))
+        params = [float(v) for v in cam.params]
+        if cam.model.name == "SIMPLE_RADIAL":
+            f, cx, cy, k1 = params
+            k2 = 0.0
+        elif cam.model.name == "RADIAL":
+            f, cx, cy, k1, k2 = params
+        else:
+            return rec
+        cam.model = self.camera_model
+        cam.params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
+        refined = pycolmap.Reconstruction(rec)
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
+        try:
+            pycolmap.bundle_adjustment(refined, ba)
+        except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+            log.warning("colmap: refining the %s camera failed (%s); keeping the %s estimate", self.camera_model,
+                        exc, self.estimate_model)
+            return rec
+        full = [float(v) for v in next(iter(refined.cameras.values())).params]
+        why = intrinsics_sane(full, int(cam.width), int(cam.height)) or _far_from(full, f, int(cam.width),
+                                                                                  int(cam.height))
+        if why:
+            log.info("colmap: the %s refinement of the camera is not kept (%s); %s estimate f %.1f px, k %.3g %.3g",
+                     self.camera_model, why, self.estimate_model, f, k1, k2)
+            return rec
+        log.info("colmap: %s camera refined from the %s estimate (f %.1f px)", self.camera_model,
+                 self.estimate_model, f)
+        return refined
+
+    def _check(self, rec, db: Path) -> list[PairCheck]:
+        """The consecutive keyframe pairs whose verified matches ``rec`` contradicts (colmap_checks.py)."""
+        return inconsistent(check_pairs(rec, db, seed=self.seed, config=self.fold_check), self.fold_check) \
+            if self.fold_check is not None else []
 
     def _map_anchored(self, db: Path, images: Path, work: Path, names: list[str]):
         """Register the submap into an anchor made of the keyframes it shares with the previous
@@ -288,19 +402,39 @@ class ColmapBackbone(Backbone):
             opts.ba_refine_focal_length = False
             opts.ba_refine_principal_point = False
             opts.ba_refine_extra_params = False
-        elif self.refine_principal_point:
-            opts.ba_refine_principal_point = True
+        else:
+            opts.ba_refine_principal_point = self.refine_principal_point and not self._staged
         return opts
 
-    def _map(self, db: Path, images: Path, out: Path, angle: float, seed_offset: int, attempt: int,
-             refine: bool):
-        """One incremental-mapping attempt; the reconstruction with most registered images, or None."""
+    def _global_options(self, seed_offset: int, refine: bool):
         import pycolmap
 
-        opts = self._options(angle, seed_offset, attempt, refine)
+        opts = pycolmap.GlobalPipelineOptions()
+        threads = 1 if self.deterministic else self.num_threads
+        seed = self.seed + seed_offset
+        opts.num_threads = opts.mapper.num_threads = threads
+        opts.random_seed = opts.mapper.random_seed = seed
+        opts.mapper.rotation_averaging.random_seed = opts.mapper.global_positioning.random_seed = seed
+        opts.mapper.global_positioning.use_gpu = False
+        opts.multiple_models = False
+        ba = opts.mapper.bundle_adjustment
+        ba.refine_focal_length = ba.refine_extra_params = refine
+        ba.refine_principal_point = refine and self.refine_principal_point and not self._staged
+        return opts
+
+    def _map(self, db: Path, images: Path, out: Path, angle: float | None, seed_offset: int, attempt: int,
+             refine: bool):
+        """One mapping attempt (incremental; global when ``angle`` is None); the reconstruction with most
+        registered images, or None."""
+        import pycolmap
+
         out.mkdir()
         try:
-            recs = pycolmap.incremental_mapping(db, images, out, options=opts)
+            if angle is None:
+                recs = pycolmap.global_mapping(db, images, out, self._global_options(seed_offset, refine))
+            else:
+                recs = pycolmap.incremental_mapping(db, images, out,
+                                                    options=self._options(angle, seed_offset, attempt, refine))
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
             log.warning("colmap mapping attempt %d failed: %s", attempt, exc)
             return None
@@ -373,6 +507,8 @@ class ColmapBackbone(Backbone):
             return SubmapPrediction(indices, np.repeat(np.eye(4)[None], S, 0), eye.copy(), (h, w), eye,
                                     valid=np.zeros(S, bool), dense=False, info={"registered": 0}, **empty)
         by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+        if self._folds:  # the keyframes from the first contradicted pair on are not trusted (split off)
+            by_name = {n: img for n, img in by_name.items() if n < self._folds[0].second}
         if self.calibrated and frames[0].intrinsics is not None:
             if not self.camera:
                 cam = next(iter(rec.cameras.values()))
@@ -430,7 +566,11 @@ class ColmapBackbone(Backbone):
         return SubmapPrediction(indices, T_cam_submap, Ks, (h, w), eye, pts, conf, pix, keys, valid, dense=False,
                                 info={"registered": registered, "points3D": rec.num_points3D(),
                                       "mean_reprojection_error": rec.compute_mean_reprojection_error(),
-                                      **({"anchor_frames": anchor} if anchor else {})})
+                                      **({"anchor_frames": anchor} if anchor else {}),
+                                      **({"folded_attempts": self._folded_attempts} if self._folded_attempts else {}),
+                                      **({"folded_pairs": [[int(c.first[:-4]), int(c.second[:-4]), round(c.agree, 3),
+                                                            round(c.best, 3), round(c.rotation_deg, 2)]
+                                                           for c in self._folds]} if self._folds else {})})
 
 
 def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:

@@ -695,7 +695,8 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
 
 
 # --------------------------------------------------------------------------------------- front-end
-FRONTEND_SEQUENCES = ("euroc_uncalibrated", "euroc_calibrated", "castle", "rendered")
+FRONTEND_SEQUENCES = ("euroc_uncalibrated", "euroc_calibrated", "castle", "rendered", "rendered_drive",
+                      "rendered_drive_uncalibrated")
 
 
 def _frontend_sequences(data: Path, workdir: Path) -> list[dict]:
@@ -703,6 +704,8 @@ def _frontend_sequences(data: Path, workdir: Path) -> list[dict]:
     euroc = data / "euroc_mh05_sample"
     castle = data / "strecha_castle_p30_loop"
     rendered = workdir / "rendered_loop"
+    drive = workdir / "rendered_drive"
+    kitti00 = data / "gt_trajectories_only" / "kitti_odometry_poses" / "00.txt"
     return [
         {"name": "euroc_uncalibrated", "input": euroc, "gt": None, "calibrated": False, "submap_size": 32,
          "tau": 40.0, "available": euroc.is_dir()},
@@ -711,21 +714,38 @@ def _frontend_sequences(data: Path, workdir: Path) -> list[dict]:
         {"name": "castle", "input": castle / "images", "gt": castle / "groundtruth.txt", "calibrated": False,
          "submap_size": 8, "tau": 40.0, "available": castle.is_dir()},
         {"name": "rendered", "input": rendered, "gt": None, "calibrated": True, "submap_size": 16, "tau": 40.0,
-         "available": True, "render": True},
+         "available": True, "render": "loop"},
+        # forward driving: KITTI 00's first 600 poses (390 m, two turns) rendered at 704x214 with KITTI's 81 deg
+        # field of view, 10 Hz; calibrated and with the camera estimated
+        {"name": "rendered_drive", "input": drive, "gt": None, "calibrated": True, "submap_size": 32, "tau": 40.0,
+         "available": kitti00.is_file(), "render": "drive", "trajectory": kitti00},
+        {"name": "rendered_drive_uncalibrated", "input": drive, "gt": None, "calibrated": False, "submap_size": 32,
+         "tau": 40.0, "available": kitti00.is_file(), "render": "drive", "trajectory": kitti00},
     ]
 
 
-def _render_frontend_sequence(out: Path, frames: int, seed: int = 0) -> None:
-    """The first ``frames`` frames of a 1500-frame synthetic block loop (0.27 m per frame, 640x480,
-    non-repeating texture): two corners of forward motion (written once, reused)."""
+def _render_frontend_sequence(out: Path, frames: int, seed: int = 0, kind: str = "loop",
+                              trajectory: Path | None = None) -> None:
+    """Render a ``bench frontend`` sequence into ``out`` (written once, reused; non-repeating texture):
+    ``loop``: the first ``frames`` frames of a 1500-frame synthetic block loop (0.27 m per frame, 640x480),
+    two corners of forward motion; ``drive``: the first 600 poses of the KITTI ``trajectory`` file at 10 Hz,
+    704x214 with an 81 deg horizontal field of view (KITTI's), a street world around them."""
     import dataclasses
 
     from vggt_slam_pp.synthetic import make_scene, write_sequence
+    from vggt_slam_pp.synthetic.sequence import default_camera
 
     if (out / "groundtruth.txt").is_file():
         return
-    scene = make_scene("loop", frames=1500, seed=seed, width=640, height=480)
-    scene = dataclasses.replace(scene, trajectory=scene.trajectory.subset(list(range(min(frames, 1500)))))
+    if kind == "drive":
+        out.mkdir(parents=True, exist_ok=True)
+        excerpt = out / "trajectory_kitti.txt"  # the world is generated around the excerpt only
+        excerpt.write_text("".join(Path(trajectory).read_text().splitlines(keepends=True)[:600]))
+        scene = make_scene(trajectory_file=excerpt, frames=None, seed=seed)
+        scene = dataclasses.replace(scene, camera=default_camera(704, 214, 81.0))
+    else:
+        scene = make_scene("loop", frames=1500, seed=seed, width=640, height=480)
+        scene = dataclasses.replace(scene, trajectory=scene.trajectory.subset(list(range(min(frames, 1500)))))
     write_sequence(scene, out, aperiodic=True)
 
 
@@ -754,7 +774,8 @@ def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequenc
             out["sequences"].append(row)
             continue
         if seq.get("render"):
-            _render_frontend_sequence(seq["input"], rendered_frames)
+            _render_frontend_sequence(seq["input"], rendered_frames, kind=seq["render"],
+                                      trajectory=seq.get("trajectory"))
         source = open_source(seq["input"], ground_truth=seq["gt"])
         per_run = []
         for seed in range(runs):

@@ -158,7 +158,8 @@ def cmd_weights(args: argparse.Namespace) -> int:
 _RUN_FLAGS = {
     "backbone": ("backbone.name", None), "weights": ("backbone.weights", None), "device": ("backbone.device", None),
     "replay": ("backbone.replay_dir", str), "noise": ("backbone.noise", None), "seed": ("backbone.seed", None),
-    "matcher": ("backbone.colmap_matcher", None), "deterministic": ("backbone.deterministic", None),
+    "matcher": ("backbone.colmap_matcher", None), "mapper": ("backbone.colmap_mapper", None),
+    "deterministic": ("backbone.deterministic", None),
     "image_loops": ("backbone.image_features", None),
     "tau": ("frontend.keyframes.tau_disparity", None), "submap_size": ("frontend.submap_size", None),
     "overlap": ("frontend.overlap", None), "calibrated": ("calibrated", None),
@@ -438,15 +439,15 @@ def _default_data() -> Path:
 
 
 def _frontend_table(result: dict) -> str:
-    head = (f"{'sequence':<20}{'runs':>5}{'ATE med':>9}{'worst':>8}{'std':>8}{'% path':>8}{'degraded':>9}"
+    head = (f"{'sequence':<28}{'runs':>5}{'ATE med':>9}{'worst':>8}{'std':>8}{'% path':>8}{'degraded':>9}"
             f"{'recovered':>10}{'keyframes':>10}{'reg. min':>9}{'fps':>7}")
     rows = [f"colmap front-end, seeds 0..{result['runs'] - 1}, no back-end; ATE: Sim(3)-aligned keyframes, metres",
             head]
     for r in result["sequences"]:
         if "skipped" in r:
-            rows.append(f"{r['name']:<20}skipped: {r['skipped']}")
+            rows.append(f"{r['name']:<28}skipped: {r['skipped']}")
             continue
-        rows.append(f"{r['name']:<20}{r['runs']:>5}{r['ate_median']:>9.4f}{r['ate_worst']:>8.4f}{r['ate_std']:>8.4f}"
+        rows.append(f"{r['name']:<28}{r['runs']:>5}{r['ate_median']:>9.4f}{r['ate_worst']:>8.4f}{r['ate_std']:>8.4f}"
                     f"{r['ate_median_pct_path']:>7.2f}%{r['degraded_edges_total']:>9}{r['recovered_edges_total']:>10}"
                     f"{r['keyframes_median']:>10.0f}{r['registered_frames_min']:>9}{r['fps']:>7.2f}")
     return "\n".join(rows)
@@ -604,6 +605,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated: noise profile (default; realistic: monocular drift, 1-3 %% of the path; zero)")
     r.add_argument("--matcher", choices=("exhaustive", "sequential"),
                    help="colmap: match all keyframe pairs of a submap (default) or sequentially")
+    r.add_argument("--mapper", choices=("global", "incremental"),
+                   help="colmap: reconstruct each submap on its own with COLMAP's global mapper and link it by its "
+                        "shared keyframes (default), or register it into the previous submap's shared keyframes "
+                        "with the incremental mapper")
     r.add_argument("--submap-size", type=int,
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
     r.add_argument("--overlap", type=int,

@@ -126,9 +126,9 @@ class ColmapBackbone(Backbone):
     def __init__(self, calibrated: bool = False, max_features: int = 4096, overlap: int = 10,
                  num_threads: int = -1, seed: int = 0, keep_workdir: str | Path | None = None,
                  freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
-                 anchored: bool = True, max_image_size: int = 1600, refine_principal_point: bool = True,
+                 anchored: bool | None = None, max_image_size: int = 1600, refine_principal_point: bool = True,
                  camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True,
-                 fold_check: FoldCheckConfig | None = FoldCheckConfig(), mapper: str = "incremental",
+                 fold_check: FoldCheckConfig | None = FoldCheckConfig(), mapper: str = "global",
                  estimate_model: str | None = "RADIAL") -> None:
         import weakref
 
@@ -149,7 +149,7 @@ class ColmapBackbone(Backbone):
         self.num_threads = num_threads
         self.seed = seed
         self.deterministic = deterministic
-        self.anchored = anchored
+        self.anchored = (mapper == "incremental") if anchored is None else anchored  # default: with the incremental mapper
         self.max_image_size = max_image_size
         self.refine_principal_point = refine_principal_point
         self.camera_model = camera_model
@@ -161,6 +161,7 @@ class ColmapBackbone(Backbone):
         self.fold_check = fold_check  # None: reconstructions are not checked against their matches
         self._folds: list[PairCheck] = []  # the inconsistent pairs of the submap being reconstructed
         self._folded_attempts = 0  # of its mapping attempts, how many were folded
+        self._cut: str | None = None  # the image from which a submap folded in every attempt is split off
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
         self._pending: list[tuple[tuple[int, ...], object, str | None]] = []  # attempts: (frames, rec, features)
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
@@ -276,20 +277,57 @@ class ColmapBackbone(Backbone):
             else:
                 log.info("colmap: %d/%d images registered (%s); retrying", registered, len(frames), how)
         registered = 0 if best is None else best.num_reg_images()
-        if not refine and not given and registered < len(frames) / 2:
-            log.warning("colmap: only %d/%d images registered with the estimated camera held fixed; "
-                        "re-estimating the intrinsics", registered, len(frames))
-            rec = self._map(db, images, work / f"sparse{attempt}", ATTEMPTS[0][0], 0, attempt, True)
-            if rec is not None and rec.num_reg_images() > registered:
-                best, best_folds = rec, self._check(rec, db)
-                self._adopt_camera(rec, len(frames), "re-estimated after a registration collapse")
-        if self._staged and best is not None:
+        collapse = registered < len(frames) / 2
+        if not refine and not given and (collapse or best_folds):
+            why = "a registration collapse" if collapse else "a fold in every attempt"
+            log.warning("colmap: %d/%d images registered%s with the estimated camera held fixed; re-estimating the "
+                        "intrinsics", registered, len(frames), ", folded," if best_folds else "")
+            rec = self._reestimate(db, images, work / f"sparse{attempt}", attempt)
+            folds = self._check(rec, db) if rec is not None else []
+            if rec is not None and (best is None or _better(rec, folds, best, best_folds)):
+                best, best_folds = rec, folds
+                self._adopt_camera(rec, len(frames), f"re-estimated after {why}")
+        elif self._staged and best is not None:
             best = self._full_model(best)
-        self._folds = best_folds
+        if best is not None:
+            # COLMAP's scale is arbitrary (the global mapper's and a bundle adjustment's drift far from the
+            # incremental mapper's): the camera centres' extent is made 10 units, so that the point filter's
+            # distance range (submap units) means the same in every submap
+            best.normalize()
+        self._folds, self._cut = best_folds, None
         if best_folds:
-            log.warning("colmap: every attempt at keyframes %d..%d is folded; the keyframes from %s on are left "
-                        "unregistered (%s)", *self._span, best_folds[0].second[:-4], _describe(best_folds))
+            # the keyframes from the first contradicted pair on are split off (the front-end starts the next
+            # submap with them) when that keeps at least half of the submap; a contradiction in its first half
+            # is kept and reported: splitting there would leave almost nothing, and the next submap, starting
+            # with the same keyframes, would meet it again
+            if names.index(best_folds[0].second) >= len(names) // 2:
+                self._cut = best_folds[0].second
+            log.warning("colmap: every attempt at keyframes %d..%d is folded (%s); %s", *self._span,
+                        _describe(best_folds), f"the keyframes from {self._cut[:-4]} on are left unregistered"
+                        if self._cut else "kept: the contradiction is in the submap's first half")
         return best, names
+
+    def _reestimate(self, db: Path, images: Path, out: Path, attempt: int):
+        """Map the submap again with its camera estimated (in two stages when ``estimate_model`` is set),
+        starting from the held estimate; the reconstruction or None."""
+        import pycolmap
+
+        if self.estimate_model and self.estimate_model != self.camera_model and self._estimated is not None:
+            fx, fy, cx, cy, k1, k2 = self._estimated[1][:6]
+            database = pycolmap.Database.open(db)
+            try:
+                cam = database.read_all_cameras()[0]
+                cam.model = self.estimate_model
+                cam.params = [0.5 * (fx + fy), cx, cy, k1] + ([k2] if self.estimate_model == "RADIAL" else [])
+                cam.has_prior_focal_length = True
+                database.update_camera(cam)
+            finally:
+                database.close()
+            self._staged = True
+        rec = self._map(db, images, out, None, 0, attempt, True)
+        if rec is not None and self._staged:
+            rec = self._full_model(rec)
+        return rec
 
     def _full_model(self, rec):
         """Stage 2 of estimating the camera: ``rec`` was mapped with the constrained ``estimate_model`` (one
@@ -315,9 +353,16 @@ class ColmapBackbone(Backbone):
         ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
         try:
             pycolmap.bundle_adjustment(refined, ba)
+            # points the refined distortion cannot project any more (beyond its valid radius) are dropped
+            pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
             log.warning("colmap: refining the %s camera failed (%s); keeping the %s estimate", self.camera_model,
                         exc, self.estimate_model)
+            return rec
+        kept = refined.num_points3D() / max(rec.num_points3D(), 1)
+        if not kept >= 0.9 or not refined.compute_mean_reprojection_error() <= rec.compute_mean_reprojection_error():
+            log.info("colmap: the %s refinement of the camera is not kept (%.0f %% of the points left); %s "
+                     "estimate f %.1f px, k %.3g %.3g", self.camera_model, 100 * kept, self.estimate_model, f, k1, k2)
             return rec
         full = [float(v) for v in next(iter(refined.cameras.values())).params]
         why = intrinsics_sane(full, int(cam.width), int(cam.height)) or _far_from(full, f, int(cam.width),
@@ -507,8 +552,8 @@ class ColmapBackbone(Backbone):
             return SubmapPrediction(indices, np.repeat(np.eye(4)[None], S, 0), eye.copy(), (h, w), eye,
                                     valid=np.zeros(S, bool), dense=False, info={"registered": 0}, **empty)
         by_name = {img.name: img for img in rec.images.values() if img.has_pose}
-        if self._folds:  # the keyframes from the first contradicted pair on are not trusted (split off)
-            by_name = {n: img for n, img in by_name.items() if n < self._folds[0].second}
+        if self._cut:  # the keyframes from the first contradicted pair on are not trusted (split off)
+            by_name = {n: img for n, img in by_name.items() if n < self._cut}
         if self.calibrated and frames[0].intrinsics is not None:
             if not self.camera:
                 cam = next(iter(rec.cameras.values()))
@@ -577,4 +622,5 @@ def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
     """The ``colmap`` backbone of a run (:data:`vggt_slam_pp.plugins.BACKBONES`)."""
     b = config.backbone
     return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
-                          deterministic=b.deterministic, keep_features=b.image_features and config.backend)
+                          deterministic=b.deterministic, keep_features=b.image_features and config.backend,
+                          mapper=b.colmap_mapper)

@@ -121,7 +121,7 @@ def test_a_submap_folded_in_every_attempt_keeps_only_its_sound_part(monkeypatch,
     _folding(monkeypatch, attempts=set(range(len(ATTEMPTS))))
     frames = [straight[i] for i in range(0, 36, 3)]
     pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
-    first, second = pred.info["folded_pairs"][0][:2]
+    second = pred.info["folded_pairs"][0][1]
     assert [f.index for f in frames].index(second) == 6 and pred.info["folded_attempts"] == len(ATTEMPTS)
     assert pred.valid[:6].all() and not pred.valid[6:].any()
     assert _relative_rotation_errors_deg(pred, straight).max() < 1.0

@@ -1,37 +1,46 @@
 """Weight-free CPU backbone: per-submap structure-from-motion with pycolmap.
 
 For each submap the keyframes are written to a temporary folder, SIFT features are extracted (one
-shared camera), matched, and reconstructed by COLMAP's incremental mapper.
+shared camera), matched, and reconstructed by COLMAP's global mapper (GLOMAP: rotation averaging over
+the verified keyframe pairs, global positioning, bundle adjustment; ``mapper="global"``, default) or
+registered into the previous submap by the incremental mapper (``mapper="incremental"``, anchored).
+docs/frontend.md ("Chaining COLMAP submaps") has the measurements behind the default.
 
 Matching: all pairs within the submap (``matcher="exhaustive"``, default) or sequential with an
 ``overlap`` of 10 (``"sequential"``, the SPEC's wording). A submap has only 33 images (528 pairs), and
 on the EuRoC excerpt all-pairs matching lowered the odometry ATE from 0.057 to 0.048 m (calibrated)
 and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the default.
 
-* Uncalibrated (default): a shared ``OPENCV`` camera whose intrinsics and distortion are estimated
-  (``SIMPLE_RADIAL`` fails on the EuRoC lens, SPEC 3.3). The camera is shared by the whole sequence:
-  its intrinsics are estimated on the first submap that reconstructs and then held fixed
-  (``freeze_estimated``; on the EuRoC excerpt this took the odometry ATE from 0.104 m to 0.084 m,
-  because per-submap re-estimation changed the focal length, hence the scale, from submap to submap).
+* Uncalibrated (default): a shared ``OPENCV`` camera (``SIMPLE_RADIAL`` fails on the EuRoC lens,
+  SPEC 3.3), estimated on the first submap that reconstructs and then held fixed (``freeze_estimated``;
+  per-submap estimates change the focal length, hence the scale, from submap to submap). It is estimated
+  in two stages: mapped with a ``RADIAL`` camera (one focal length, two radial terms, principal point at
+  the image centre), then refined to the full model by one bundle adjustment, kept only when it stays
+  near the constrained estimate (``FULL_MODEL_TOLERANCE``). Eight free intrinsics on a forward drive gave
+  fx 416 / fy 652 px. When every attempt with the held camera is folded (below) or registers fewer
+  than half the frames, the submap is mapped again with the camera estimated, and a sane estimate from
+  a sound reconstruction replaces the held one.
 * Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
 
-The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there). Observations are the
-triangulated keypoints of each image: ``keys`` are SIFT keypoint indices, identical for the same image
-in two submaps, so the overlap frame links submaps (odometry method ``pose_scale``). Confidence per
+The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there and scaled so that the
+camera centres span 10 units). Observations are the triangulated keypoints of each image: ``keys`` are
+SIFT keypoint indices, identical for the same image in two submaps, so the shared keyframes link
+submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper). Confidence per
 point: ``track_length / (1 + reprojection error)``.
 
-Failures degrade instead of raising: while some keyframes stay unregistered, mapping is retried
-(``ATTEMPTS``: lower initial triangulation angles 16 -> 4 -> 2 degrees with fewer required inliers,
-and other random seeds), keeping the attempt that registers most frames; with an estimated camera held
-fixed, a collapsed registration (< half the frames) is retried with the intrinsics refined, and a sane
-new estimate replaces the old one. Frames left unregistered are marked ``valid=False`` with the nearest
-registered neighbour's pose (the front-end splits them off or bridges, see ``frontend.py``), and a
-submap that cannot be reconstructed at all is returned with every frame invalid (identity poses, no
-points).
+Failures degrade instead of raising. Mapping is retried (``ATTEMPTS``: the global mapper, then the
+incremental one with initial triangulation angles 16 -> 4 -> 2 degrees and other seeds) while keyframes
+stay unregistered or the reconstruction is *folded*: it contradicts the verified matches of a pair of
+consecutive keyframes (``colmap_checks.py``). The attempt kept is fold-free first, then registers most
+frames. A fold left in every attempt splits the submap there when that keeps at least its first half
+(the rest starts the next submap), and is otherwise kept and reported (``info["folded_pairs"]``).
+Frames left unregistered are marked ``valid=False`` with the nearest registered neighbour's pose (the
+front-end splits them off or bridges, see ``frontend.py``), and a submap that cannot be reconstructed
+at all is returned with every frame invalid (identity poses, no points).
 
-Determinism: feature extraction and matching run on one thread, and so does the mapper unless
-``deterministic=False`` (multi-threaded, repeated runs of one submap differed by up to 8 cm); the
-mapper's ``random_seed`` is the run's seed plus the attempt. docs/frontend.md gives the measured cost.
+Determinism: feature extraction, matching and mapping run on one thread unless ``deterministic=False``
+(multi-threaded, repeated runs of one submap differed by up to 8 cm); the mappers' and the fold check's
+random seeds are the run's seed (plus the attempt's offset). docs/frontend.md gives the measured cost.
 
 Estimated intrinsics must be physically sensible (``intrinsics_sane``: focal 0.3-4x the image's larger
 side, aspect within 10 %, principal point in the middle 40 %, |k1|, |k2| < 1, |p1|, |p2| < 0.05);
@@ -51,7 +60,12 @@ import cv2
 import numpy as np
 
 from vggt_slam_pp.frontend.backbones.base import Backbone
-from vggt_slam_pp.frontend.backbones.colmap_checks import FoldCheckConfig, PairCheck, check_pairs, inconsistent
+from vggt_slam_pp.frontend.backbones.colmap_checks import (
+    FoldCheckConfig,
+    PairCheck,
+    check_pairs,
+    inconsistent,
+)
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -80,6 +94,8 @@ def _better(rec, folds: list[PairCheck], best, best_folds: list[PairCheck]) -> b
         return (not f, r.num_reg_images(), -len(f))
     return key(rec, folds) > key(best, best_folds)
 
+
+FOLD_CHECK = FoldCheckConfig()  # the default check of reconstructions against their matches (colmap_checks.py)
 
 # how far the full camera model may move from the constrained estimate it is refined from (``_full_model``):
 # focal lengths (relative), their ratio, and the principal point from the image centre (fraction of each side)
@@ -128,7 +144,7 @@ class ColmapBackbone(Backbone):
                  freeze_estimated: bool = True, matcher: str = "exhaustive", deterministic: bool = True,
                  anchored: bool | None = None, max_image_size: int = 1600, refine_principal_point: bool = True,
                  camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True,
-                 fold_check: FoldCheckConfig | None = FoldCheckConfig(), mapper: str = "global",
+                 fold_check: FoldCheckConfig | None = FOLD_CHECK, mapper: str = "global",
                  estimate_model: str | None = "RADIAL") -> None:
         import weakref
 
@@ -244,7 +260,7 @@ class ColmapBackbone(Backbone):
         given = self.calibrated and frames[0].intrinsics is not None
         best, attempt = None, 0
         refine = not (given or (self.freeze_estimated and self._estimated is not None))
-        self._anchor_names, self._folds, self._folded_attempts = [], [], 0
+        self._anchor_names, self._folds, self._folded_attempts, self._cut = [], [], 0, None
         if self.anchored and not refine:
             best = self._map_anchored(db, images, work, names)
             if best is not None and best.num_reg_images() == len(frames):
@@ -351,11 +367,15 @@ class ColmapBackbone(Backbone):
         refined = pycolmap.Reconstruction(rec)
         ba = pycolmap.BundleAdjustmentOptions()
         ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
+        ba.print_summary = False
+        level = pycolmap.logging.minloglevel
         try:
             pycolmap.bundle_adjustment(refined, ba)
+            pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
             # points the refined distortion cannot project any more (beyond its valid radius) are dropped
             pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+            pycolmap.logging.minloglevel = level
             log.warning("colmap: refining the %s camera failed (%s); keeping the %s estimate", self.camera_model,
                         exc, self.estimate_model)
             return rec

@@ -85,13 +85,14 @@ def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfig = FoldCheckConfig()
+def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfig | None = None
                 ) -> list[PairCheck]:
     """Every pair of consecutive registered images (by name) of ``rec`` with enough verified matches in
     ``database`` (the feature database ``rec`` was built from: same image ids), checked as the module
     docstring says."""
     import pycolmap
 
+    config = config or FoldCheckConfig()
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     out: list[PairCheck] = []
     db = pycolmap.Database.open(Path(database))
@@ -125,6 +126,7 @@ def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfi
     return out
 
 
-def inconsistent(checks: list[PairCheck], config: FoldCheckConfig = FoldCheckConfig()) -> list[PairCheck]:
+def inconsistent(checks: list[PairCheck], config: FoldCheckConfig | None = None) -> list[PairCheck]:
     """The pairs of ``checks`` whose matches the reconstruction does not explain (module docstring)."""
+    config = config or FoldCheckConfig()
     return [c for c in checks if c.best - c.agree > config.margin and c.rotation_deg > config.min_rotation_deg]

@@ -244,6 +244,9 @@ def test_presets_and_bad_configuration_files(tmp_path, capsys):
     older = tmp_path / "older.json"
     older.write_text('{"backbone": {"name": "colmap"}}')  # missing keys keep their defaults
     assert RunConfig.load(older).backbone.name == "colmap" and RunConfig.load(older).frontend.submap_size == 32
+    # a colmap run from before the global mapper was the default keeps the incremental one it was made with
+    assert RunConfig.load(older).backbone.colmap_mapper == "incremental"
+    assert RunConfig().backbone.colmap_mapper == "global"
     # a config.json of version 0.x: the worker's settings and fault injection were in backend_config
     older.write_text('{"backend_config": {"worker": "inline", "worker_duty": 0.25, "queue_size": 4, '
                      '"inject_wrong_candidates": 0.1, "loop_information": "icp", "candidates_per_query": 2}}')

@@ -112,7 +112,12 @@ _MOVED_TO_WORKER = {"worker": "mode", "worker_threads": "threads", "worker_prior
 def _upgrade(data):
     """A ``config.json`` written by an earlier version, in today's form: moved keys follow (the worker's
     settings, fault injection); the removed ``loop_information`` is dropped when it was "icp" (today's
-    behaviour) and refused otherwise."""
+    behaviour) and refused otherwise; a colmap run without ``colmap_mapper`` keeps the incremental mapper
+    it was made with."""
+    if isinstance(data, dict) and isinstance(data.get("backbone"), dict) and \
+            data["backbone"].get("name") == "colmap" and "colmap_mapper" not in data["backbone"]:
+        # a colmap run from before the global mapper was its default: it used the incremental one
+        data = {**data, "backbone": {**data["backbone"], "colmap_mapper": "incremental"}}
     if not isinstance(data, dict) or not isinstance(data.get("backend_config"), dict):
         return data
     b, data = dict(data["backend_config"]), dict(data)

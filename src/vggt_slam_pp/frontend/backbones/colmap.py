@@ -19,11 +19,11 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
   near the constrained estimate (``FULL_MODEL_TOLERANCE``). Eight free intrinsics on a forward drive gave
   fx 416 / fy 652 px. When every attempt with the held camera is folded (below) or registers fewer
   than half the frames, the submap is mapped again with the camera estimated, and a sane estimate from
-  a sound reconstruction replaces the held one.
+  a fold-free reconstruction replaces the held one.
 * Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
 
-The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there and scaled so that the
-camera centres span 10 units). Observations are the triangulated keypoints of each image: ``keys`` are
+The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there, after scaling it so that
+the camera centres' 10th-90th percentile extent is 10 units). Observations are the triangulated keypoints of each image: ``keys`` are
 SIFT keypoint indices, identical for the same image in two submaps, so the shared keyframes link
 submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper). Confidence per
 point: ``track_length / (1 + reprojection error)``.
@@ -31,8 +31,8 @@ point: ``track_length / (1 + reprojection error)``.
 Failures degrade instead of raising. Mapping is retried (``ATTEMPTS``: the global mapper, then the
 incremental one with initial triangulation angles 16 -> 4 -> 2 degrees and other seeds) while keyframes
 stay unregistered or the reconstruction is *folded*: it contradicts the verified matches of a pair of
-consecutive keyframes (``colmap_checks.py``). The attempt kept is fold-free first, then registers most
-frames. A fold left in every attempt splits the submap there when that keeps at least its first half
+consecutive keyframes (``colmap_checks.py``). The attempt kept registers most frames before any
+contradicted pair (``_better``). A fold left in every attempt splits the submap there when that keeps at least its first half
 (the rest starts the next submap), and is otherwise kept and reported (``info["folded_pairs"]``).
 Frames left unregistered are marked ``valid=False`` with the nearest registered neighbour's pose (the
 front-end splits them off or bridges, see ``frontend.py``), and a submap that cannot be reconstructed
@@ -87,11 +87,18 @@ def _describe(folds: list[PairCheck]) -> str:
             f"up to {worst.rotation_deg:.1f} deg ({worst.agree:.0%} of matches explained, two-view {worst.best:.0%})")
 
 
+def _sound_images(rec, folds: list[PairCheck]) -> int:
+    """Registered images of ``rec`` before its first contradicted pair's second image (all without folds)."""
+    names = [im.name for im in rec.images.values() if im.has_pose]
+    return sum(n < folds[0].second for n in names) if folds else len(names)
+
+
 def _better(rec, folds: list[PairCheck], best, best_folds: list[PairCheck]) -> bool:
-    """Whether reconstruction ``rec`` beats ``best``: free of folds first, then more registered images, then
-    fewer inconsistent pairs."""
+    """Whether reconstruction ``rec`` beats ``best``: more images registered before any contradicted pair
+    (a small fold-free fragment does not beat a whole submap with one late fold), then free of folds, then
+    more registered images, then fewer contradicted pairs."""
     def key(r, f):
-        return (not f, r.num_reg_images(), -len(f))
+        return (_sound_images(r, f), not f, r.num_reg_images(), -len(f))
     return key(rec, folds) > key(best, best_folds)
 
 
@@ -179,6 +186,7 @@ class ColmapBackbone(Backbone):
         self._folded_attempts = 0  # of its mapping attempts, how many were folded
         self._cut: str | None = None  # the image from which a submap folded in every attempt is split off
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
+        self._previous_names: set[str] = set()  # its images that the front-end kept
         self._pending: list[tuple[tuple[int, ...], object, str | None]] = []  # attempts: (frames, rec, features)
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
@@ -200,6 +208,7 @@ class ColmapBackbone(Backbone):
             frames, rec, _ = self._pending[k]
             if frames[:len(kept)] == kept:
                 self._previous, chosen = rec, k
+                self._previous_names = {f"{i:08d}.png" for i in kept}  # a split-off tail is no anchor
                 break
         for k, (_, _, features) in enumerate(self._pending):  # the other attempts' features are not needed
             if k != chosen and features is not None:
@@ -302,7 +311,8 @@ class ColmapBackbone(Backbone):
             folds = self._check(rec, db) if rec is not None else []
             if rec is not None and (best is None or _better(rec, folds, best, best_folds)):
                 best, best_folds = rec, folds
-                self._adopt_camera(rec, len(frames), f"re-estimated after {why}")
+                if not folds:  # a camera is taken only from a sound reconstruction
+                    self._adopt_camera(rec, len(frames), f"re-estimated after {why}")
         elif self._staged and best is not None:
             best = self._full_model(best)
         if best is not None:
@@ -329,12 +339,13 @@ class ColmapBackbone(Backbone):
         import pycolmap
 
         if self.estimate_model and self.estimate_model != self.camera_model and self._estimated is not None:
-            fx, fy, cx, cy, k1, k2 = self._estimated[1][:6]
+            fx, fy, _, _, k1, k2 = self._estimated[1][:6]
             database = pycolmap.Database.open(db)
             try:
                 cam = database.read_all_cameras()[0]
                 cam.model = self.estimate_model
-                cam.params = [0.5 * (fx + fy), cx, cy, k1] + ([k2] if self.estimate_model == "RADIAL" else [])
+                cam.params = [0.5 * (fx + fy), 0.5 * cam.width, 0.5 * cam.height, k1] + \
+                    ([k2] if self.estimate_model == "RADIAL" else [])  # stage 1: principal point at the centre
                 cam.has_prior_focal_length = True
                 database.update_camera(cam)
             finally:
@@ -366,8 +377,10 @@ class ColmapBackbone(Backbone):
         cam.params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
         refined = pycolmap.Reconstruction(rec)
         ba = pycolmap.BundleAdjustmentOptions()
-        ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
+        ba.refine_focal_length = ba.refine_extra_params = True
+        ba.refine_principal_point = self.refine_principal_point
         ba.print_summary = False
+        ba.ceres.solver_options.num_threads = 1 if self.deterministic else self.num_threads
         level = pycolmap.logging.minloglevel
         try:
             pycolmap.bundle_adjustment(refined, ba)
@@ -409,7 +422,8 @@ class ColmapBackbone(Backbone):
         if self._previous is None:
             return None
         prev = self._previous
-        shared = [n for n in names if (im := prev.find_image_with_name(n)) is not None and im.has_pose]
+        shared = [n for n in names if n in self._previous_names and
+                  (im := prev.find_image_with_name(n)) is not None and im.has_pose]
         if len(shared) < 2:
             return None
         database = pycolmap.Database.open(db)
@@ -579,7 +593,7 @@ class ColmapBackbone(Backbone):
                 cam = next(iter(rec.cameras.values()))
                 self.camera = {"model": "OPENCV", "params": [float(v) for v in cam.params], "source": "given",
                                "width": int(cam.width), "height": int(cam.height)}
-        elif rec.num_reg_images() >= max(3, S // 2) and \
+        elif rec.num_reg_images() >= max(3, S // 2) and not self._folds and \
                 not (self.freeze_estimated and self._estimated is not None):
             self._adopt_camera(rec, S, f"estimated on keyframes {self._span[0]}..{self._span[1]}")
         T_cam_world = np.full((S, 4, 4), np.nan)

@@ -123,6 +123,56 @@ def test_a_folded_reconstruction_is_found_by_its_own_matches_and_mapped_again(mo
     assert _relative_rotation_errors_deg(pred, straight).max() < 1.0
 
 
+def _disconnect(rec, from_name: str, factor: float = 8.0) -> None:
+    """Break ``rec`` before image ``from_name``: the points seen by both images of the pair there are
+    deleted, and the cameras from ``from_name`` on are moved back along the motion so that the pair's
+    step is ``factor`` times longer (a scale break the epipolar geometry of forward motion still fits)."""
+    import numpy as np
+    import pycolmap
+
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    k = [im.name for im in images].index(from_name)
+    a, b = images[k - 1], images[k]
+    seen = {p.point3D_id for p in a.points2D if p.has_point3D()} & {p.point3D_id for p in b.points2D if p.has_point3D()}
+    for pid in seen:
+        rec.delete_point3D(pid)
+    shift = (factor - 1.0) * (b.projection_center() - a.projection_center())
+    for im in images[k:]:
+        T = im.cam_from_world().matrix()
+        rec.frames[im.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(T[:, :3]),
+                                                                 np.asarray(T[:, 3] - T[:, :3] @ shift))
+
+
+def test_a_reconstruction_in_two_unconnected_blocks_is_found_and_mapped_again(monkeypatch, straight):
+    """Fault test: the first mapping attempt comes out as two blocks of keyframes with no shared structure
+    between them, the second block 8x too far (the global mapper did this on the rendered drive; every
+    observation still fits). The backbone finds the pair that shares no points, maps again, and keeps the
+    sound attempt: consecutive steps keep their true proportions."""
+    import numpy as np
+
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+    from vggt_slam_pp.geometry.lie import se3_inverse
+
+    original = ColmapBackbone._map
+
+    def mapped(self, db, images, out, angle, seed_offset, attempt, refine):
+        rec = original(self, db, images, out, angle, seed_offset, attempt, refine)
+        if rec is not None and attempt == 0:
+            names = sorted(im.name for im in rec.images.values() if im.has_pose)
+            _disconnect(rec, names[len(names) // 2])
+        return rec
+
+    monkeypatch.setattr(ColmapBackbone, "_map", mapped)
+    frames = [straight[i] for i in range(0, 36, 3)]
+    pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
+    assert pred.info["folded_attempts"] == 1 and "folded_pairs" not in pred.info
+    assert pred.valid.all()
+    est = np.array([se3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+    true = np.array([straight.ground_truth().poses[f.index][:3, 3] for f in frames])
+    ratio = np.linalg.norm(np.diff(est, axis=0), axis=1) / np.linalg.norm(np.diff(true, axis=0), axis=1)
+    assert ratio.max() / ratio.min() < 1.2  # no step out of proportion
+
+
 def test_a_submap_folded_in_every_attempt_keeps_only_its_sound_part(monkeypatch, straight):
     """Fault test: every attempt folded. The keyframes from the contradicted pair on are marked unregistered
     (the front-end starts the next submap with them) and the pair is reported; what is kept is sound."""

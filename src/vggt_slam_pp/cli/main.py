@@ -291,7 +291,9 @@ def _print_summary(report: dict, out) -> None:
     if "ate_rmse_odometry" in report:
         line = f"ATE rmse (Sim(3)-aligned, keyframes): odometry {report['ate_rmse_odometry']:.4f}"
         if "ate_rmse" in report:
-            line += f", corrected {report['ate_rmse']:.4f} ({100 * report.get('ate_reduction', 0):+.0f} % reduction)"
+            red = 100 * report.get("ate_reduction", 0.0)
+            change = f"{red:.1f} % lower" if red >= 0 else f"{-red:.1f} % higher: the loops did not help"
+            line += f", corrected {report['ate_rmse']:.4f} ({change})"
         print(line)
     files = "keyframes_odometry.txt/.kitti, frames_odometry.txt/.kitti, frames.csv, report.json, config.json"
     if "loops_accepted" in report:
@@ -613,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
     r.add_argument("--overlap", type=int,
                    help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
-                        "max(2, min(4, w/4)) for colmap)")
+                        "max(2, min(8, w/4)) for colmap)")
     r.add_argument("--image-loops", action=argparse.BooleanOptionalAction, default=None,
                    help="colmap: register loop candidates from the keyframes' images (default; keeps about 10 MB "
                         "of features per submap in the run folder); --no-image-loops registers them from points")

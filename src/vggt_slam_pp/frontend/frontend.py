@@ -4,7 +4,7 @@ Submap assembly (SPEC 3.2): a submap closes when it holds ``submap_size`` (w = 3
 and at the end of the input (the final partial submap is kept). Every submap after the first starts
 with ``overlap`` frames, the previous submap's last registered keyframes, which link the two by
 odometry: one for dense backbones (the paper's choice: a dense frame gives thousands of
-correspondences), ``max(2, min(4, w // 4))`` for sparse ones (our decision, docs/frontend.md: a sparse
+correspondences), ``max(2, min(8, w // 4))`` for sparse ones (our decision, docs/frontend.md: a sparse
 frame gives a few hundred points, and a single frame is a single point of failure).
 
 Recovery (never a silent identity edge):
@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 class FrontendConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap_size: int = 32  # w: new keyframes per submap
-    overlap: int = 0  # keyframes shared with the previous submap; 0 = auto (1 dense, max(2, min(4, w // 4)) sparse)
+    overlap: int = 0  # keyframes shared with the previous submap; 0 = auto (1 dense, max(2, min(8, w // 4)) sparse)
     bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, 2 * overlap))
     filter: FilterConfig = field(default_factory=FilterConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
@@ -128,7 +128,7 @@ class Frontend:
         self.first_id = first_id  # id of the first submap (a recording added to a map of first_id submaps)
         self.config = config or FrontendConfig()
         c = self.config
-        self.overlap = c.overlap or (1 if backbone.dense else max(2, min(4, c.submap_size // 4)))
+        self.overlap = c.overlap or (1 if backbone.dense else max(2, min(8, c.submap_size // 4)))
         self.bridge_frames = c.bridge_frames or max(4, 2 * self.overlap)
         self.selector = KeyframeSelector(c.keyframes)
         self.assembler = SubmapAssembler(c.submap_size, self.overlap)

@@ -81,10 +81,20 @@ log = logging.getLogger(__name__)
 ATTEMPTS = ((16.0, 0), (None, 0), (4.0, 0), (16.0, 1), (2.0, 0), (8.0, 2))
 
 
-def _describe(folds: list[PairCheck]) -> str:
-    worst = max(folds, key=lambda c: c.rotation_deg)
-    return (f"{len(folds)} keyframe pair(s) from {folds[0].first[:-4]} disagree with their matches, "
-            f"up to {worst.rotation_deg:.1f} deg ({worst.agree:.0%} of matches explained, two-view {worst.best:.0%})")
+def _describe(folds: list[PairCheck], config: FoldCheckConfig | None = None) -> str:
+    config = config or FOLD_CHECK
+    bent = [c for c in folds if c.folded(config)]
+    cut = [c for c in folds if c.disconnected(config)]
+    parts = []
+    if bent:
+        worst = max(bent, key=lambda c: c.rotation_deg)
+        parts.append(f"{len(bent)} keyframe pair(s) from {bent[0].first[:-4]} disagree with their matches, up to "
+                     f"{worst.rotation_deg:.1f} deg ({worst.agree:.0%} of matches explained, two-view {worst.best:.0%})")
+    if cut:
+        c = cut[0]
+        parts.append(f"{len(cut)} keyframe pair(s) from {c.first[:-4]} share no structure ({c.shared_points} "
+                     f"points for {c.matches} matches: their distance, hence the scale, is unconstrained)")
+    return "; ".join(parts)
 
 
 def _sound_images(rec, folds: list[PairCheck]) -> int:
@@ -278,7 +288,7 @@ class ColmapBackbone(Backbone):
                     return best, names
                 self._folded_attempts += 1
                 log.warning("colmap: the anchored reconstruction of keyframes %d..%d contradicts its own matches "
-                            "(%s); mapping the submap on its own", *self._span, _describe(folds))
+                            "(%s); mapping the submap on its own", *self._span, _describe(folds, self.fold_check))
             elif best is not None:
                 log.info("colmap: anchored mapping registered %d/%d images; mapping the submap on its own",
                          best.num_reg_images(), len(frames))
@@ -298,7 +308,7 @@ class ColmapBackbone(Backbone):
             how = "global mapper" if angle is None else f"init angle {angle:.0f} deg, seed +{seed_offset}"
             if best_folds:
                 log.warning("colmap: keyframes %d..%d reconstructed folded: %s (%s); retrying",
-                            *self._span, _describe(best_folds), how)
+                            *self._span, _describe(best_folds, self.fold_check), how)
             else:
                 log.info("colmap: %d/%d images registered (%s); retrying", registered, len(frames), how)
         registered = 0 if best is None else best.num_reg_images()
@@ -329,7 +339,7 @@ class ColmapBackbone(Backbone):
             if names.index(best_folds[0].second) >= len(names) // 2:
                 self._cut = best_folds[0].second
             log.warning("colmap: every attempt at keyframes %d..%d is folded (%s); %s", *self._span,
-                        _describe(best_folds), f"the keyframes from {self._cut[:-4]} on are left unregistered"
+                        _describe(best_folds, self.fold_check), f"the keyframes from {self._cut[:-4]} on are left unregistered"
                         if self._cut else "kept: the contradiction is in the submap's first half")
         return best, names
 

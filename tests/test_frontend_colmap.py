@@ -181,7 +181,7 @@ def test_a_submap_folded_in_every_attempt_keeps_only_its_sound_part(monkeypatch,
     _folding(monkeypatch, attempts=set(range(len(ATTEMPTS))))
     frames = [straight[i] for i in range(0, 36, 3)]
     pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
-    second = pred.info["folded_pairs"][0][1]
+    second = pred.info["folded_pairs"][0]["second"]
     assert [f.index for f in frames].index(second) == 6
     assert pred.info["folded_attempts"] == sum(1 for a in ATTEMPTS if a[0] is not None) + 1  # every one (one global)
     assert pred.valid[:6].all() and not pred.valid[6:].any()
@@ -196,7 +196,7 @@ def test_a_fold_in_every_attempt_near_the_submaps_start_is_kept_and_reported(mon
     _folding(monkeypatch, attempts=set(range(10)), at=0.25)
     frames = [straight[i] for i in range(0, 36, 3)]
     pred = ColmapBackbone(calibrated=True, keep_features=False).predict(frames)
-    assert [f.index for f in frames].index(pred.info["folded_pairs"][0][1]) == 3
+    assert [f.index for f in frames].index(pred.info["folded_pairs"][0]["second"]) == 3
     assert pred.valid.all()
 
 
@@ -234,3 +234,50 @@ def test_a_full_camera_refinement_far_from_the_constrained_estimate_is_refused()
     assert "focal" in _far_from([440, 440, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
     assert "focal lengths" in _far_from([390, 410, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
     assert "principal point" in _far_from([398, 398, 380, 240, 0, 0, 0, 0], 398.0, 640, 480)
+
+
+@pytest.fixture(scope="module")
+def turning(tmp_path_factory):
+    """A rendered drive at 480x200 (81 deg field of view, 0.8 m per frame): 24 m straight, then a 90 deg
+    turn of radius 20 m; with the true focal length."""
+    import numpy as np
+
+    from vggt_slam_pp.io import open_source
+    from vggt_slam_pp.synthetic import make_scene, write_sequence
+    from vggt_slam_pp.synthetic.sequence import default_camera
+
+    out = tmp_path_factory.mktemp("turning")
+    lines, pos, yaw = [], np.zeros(3), 0.0
+    for k in range(80):
+        R = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0], [-np.sin(yaw), 0.0, np.cos(yaw)]])
+        lines.append(" ".join(f"{v:.6f}" for v in np.c_[R, pos].ravel()))  # KITTI: T_world_cam, 3x4
+        pos = pos + 0.8 * R[:, 2]
+        if k >= 30 and yaw > -np.pi / 2:
+            yaw -= 0.8 / 20.0
+    (out / "trajectory.txt").write_text("\n".join(lines) + "\n")
+    scene = make_scene(trajectory_file=out / "trajectory.txt", frames=None, seed=0)
+    scene = dataclasses.replace(scene, camera=default_camera(480, 200, 81.0))
+    write_sequence(scene, out / "seq", aperiodic=True)
+    return open_source(out / "seq"), float(scene.camera.fx)
+
+
+def test_a_camera_held_from_a_straight_stretch_is_refined_where_the_drive_turns(turning):
+    """Forward motion hardly constrains the focal length (on this drive's straight stretch the estimate
+    came out at 136 px for 281, and was refused); a turn does. A camera held from a submap that turned
+    0.3 deg, 5 % short, is refined on the first sound submap that turns at least twice as much, that
+    submap comes back with the refined camera, and the next submaps hold it (a straight one does not
+    change it again)."""
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+
+    source, f_true = turning
+    bb = ColmapBackbone(calibrated=False, keep_features=False)
+    f = 0.95 * f_true
+    bb._estimated = ((480, 200), [f, f, 240.0, 100.0, 0.0, 0.0, 0.0, 0.0])  # as if estimated on a straight stretch
+    bb.camera = {"params": list(bb._estimated[1]), "spread_deg": 0.3, "history": []}
+    pred = bb.predict([source[i] for i in range(24, 66, 2)])
+    assert pred.valid.all() and "refined on keyframes 24..64" in bb.camera["source"]
+    assert abs(bb.camera["params"][0] / f_true - 1.0) < 0.02 and bb.camera["spread_deg"] > 60
+    assert abs(pred.intrinsics[0][0, 0] / f_true - 1.0) < 0.02  # the turning submap itself uses it
+    held = list(bb.camera["params"])
+    bb.predict([source[i] for i in range(0, 30, 2)])
+    assert bb.camera["params"] == held

@@ -17,7 +17,8 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
   in two stages: mapped with a ``RADIAL`` camera (one focal length, two radial terms, principal point at
   the image centre), then refined to the full model by one bundle adjustment, kept only when it stays
   near the constrained estimate (``FULL_MODEL_TOLERANCE``). Eight free intrinsics on a forward drive gave
-  fx 416 / fy 652 px. When every attempt with the held camera is folded (below) or registers fewer
+  fx 416 / fy 652 px. Forward motion hardly constrains the focal length, rotation does: a later sound
+  submap that turns at least twice as much as the one the camera came from refines it (``_refocus``). When every attempt with the held camera is folded (below) or registers fewer
   than half the frames, the submap is mapped again with the camera estimated, and a sane estimate from
   a fold-free reconstruction replaces the held one.
 * Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
@@ -97,6 +98,15 @@ def _describe(folds: list[PairCheck], config: FoldCheckConfig | None = None) -> 
     return "; ".join(parts)
 
 
+def _pair_record(c: PairCheck) -> dict:
+    """A contradicted pair for ``report.json`` (NaN, where the pair had no two-view estimate, as None)."""
+    def num(v: float, digits: int):
+        return round(float(v), digits) if np.isfinite(v) else None
+    return {"first": int(c.first[:-4]), "second": int(c.second[:-4]), "agree": num(c.agree, 3),
+            "two_view": num(c.best, 3), "rotation_deg": num(c.rotation_deg, 2), "matches": c.matches,
+            "shared_points": c.shared_points}
+
+
 def _sound_images(rec, folds: list[PairCheck]) -> int:
     """Registered images of ``rec`` before its first contradicted pair's second image (all without folds)."""
     names = [im.name for im in rec.images.values() if im.has_pose]
@@ -110,6 +120,20 @@ def _better(rec, folds: list[PairCheck], best, best_folds: list[PairCheck]) -> b
     def key(r, f):
         return (_sound_images(r, f), not f, r.num_reg_images(), -len(f))
     return key(rec, folds) > key(best, best_folds)
+
+
+# a held camera is refined on a later sound submap that turns at least ``spread_ratio`` times as much as the
+# submap it was estimated on and at least ``min_spread_deg`` (``_view_spread``), and adopted when its focal
+# length moves by ``min_change``
+REFOCUS = {"spread_ratio": 2.0, "min_spread_deg": 30.0, "min_change": 0.01}
+
+
+def _view_spread(rec) -> float:
+    """The largest angle (degrees) between two registered cameras' optical axes in ``rec``."""
+    z = np.array([np.asarray(im.cam_from_world().rotation.matrix())[2] for im in rec.images.values() if im.has_pose])
+    if len(z) < 2:
+        return 0.0
+    return float(np.degrees(np.arccos(np.clip((z @ z.T).min(), -1.0, 1.0))))
 
 
 FOLD_CHECK = FoldCheckConfig()  # the default check of reconstructions against their matches (colmap_checks.py)
@@ -325,6 +349,8 @@ class ColmapBackbone(Backbone):
                     self._adopt_camera(rec, len(frames), f"re-estimated after {why}")
         elif self._staged and best is not None:
             best = self._full_model(best)
+        elif not refine and not given and best is not None and not best_folds and registered >= 0.9 * len(frames):
+            best = self._refocus(best, len(frames))
         if best is not None:
             # COLMAP's scale is arbitrary (the global mapper's and a bundle adjustment's drift far from the
             # incremental mapper's): the camera centres' extent is made 10 units, so that the point filter's
@@ -417,6 +443,57 @@ class ColmapBackbone(Backbone):
         log.info("colmap: %s camera refined from the %s estimate (f %.1f px)", self.camera_model,
                  self.estimate_model, f)
         return refined
+
+    def _refocus(self, rec, S: int):
+        """A held camera estimated on a submap that hardly turned (the focal length is observable from
+        rotation, hardly from forward motion) is refined on ``rec``, a sound submap mapped with it that turns
+        at least ``REFOCUS["spread_ratio"]`` times as much (and ``REFOCUS["min_spread_deg"]``): one bundle adjustment with one focal length and
+        two radial terms free (principal point held). When the focal length moves by at least
+        ``REFOCUS["min_change"]``, the reprojection error drops and the estimate is sane, ``rec`` becomes the
+        refined reconstruction and its camera is held from now on; otherwise ``rec`` is returned as it is."""
+        import pycolmap
+
+        spread = _view_spread(rec)
+        if self._estimated is None or spread < max(REFOCUS["spread_ratio"] * self.camera.get("spread_deg", 0.0),
+                                                   REFOCUS["min_spread_deg"]):
+            return rec
+        cam = next(iter(rec.cameras.values()))
+        if cam.model.name != "OPENCV":
+            return rec
+        fx, fy, cx, cy, k1, k2 = [float(v) for v in cam.params][:6]
+        trial = pycolmap.Reconstruction(rec)
+        tcam = next(iter(trial.cameras.values()))
+        tcam.model = "RADIAL"
+        tcam.params = [0.5 * (fx + fy), cx, cy, k1, k2]
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = ba.refine_extra_params = True
+        ba.refine_principal_point = False
+        ba.print_summary = False
+        ba.ceres.solver_options.num_threads = 1 if self.deterministic else self.num_threads
+        level = pycolmap.logging.minloglevel
+        try:
+            pycolmap.bundle_adjustment(trial, ba)
+        except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
+            log.warning("colmap: refining the held camera on keyframes %d..%d failed (%s)", *self._span, exc)
+            return rec
+        finally:
+            pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
+        f, _, _, r1, r2 = [float(v) for v in next(iter(trial.cameras.values())).params]
+        params = [f, f, cx, cy, r1, r2, 0.0, 0.0]
+        held = 0.5 * (fx + fy)
+        error, before = trial.compute_mean_reprojection_error(), rec.compute_mean_reprojection_error()
+        why = intrinsics_sane(params, int(cam.width), int(cam.height))
+        if why or abs(f / held - 1.0) < REFOCUS["min_change"] or not error < before:
+            log.info("colmap: the held camera refined on keyframes %d..%d (turning %.0f deg): f %.1f -> %.1f px, "
+                     "reprojection error %.3f -> %.3f px: not adopted%s", *self._span, spread, held, f, before, error,
+                     f" ({why})" if why else "")
+            return rec
+        tcam = next(iter(trial.cameras.values()))
+        tcam.model = "OPENCV"
+        tcam.params = params
+        self._adopt_camera(trial, S, f"refined on keyframes {self._span[0]}..{self._span[1]} (turning {spread:.0f} deg, "
+                                     f"the previous estimate's submap {self.camera.get('spread_deg', 0.0):.0f} deg)")
+        return trial
 
     def _check(self, rec, db: Path) -> list[PairCheck]:
         """The consecutive keyframe pairs whose verified matches ``rec`` contradicts (colmap_checks.py)."""
@@ -535,15 +612,16 @@ class ColmapBackbone(Backbone):
         params = [float(v) for v in cam.params]
         why = intrinsics_sane(params, int(cam.width), int(cam.height), cam.model.name)
         history = self.camera.get("history", [])
+        spread = round(_view_spread(rec), 1)
         history.append({"keyframes": list(self._span), "params": params, "registered": rec.num_reg_images(),
-                        "frames": S, "adopted": not why, "reason": why or source})
+                        "frames": S, "spread_deg": spread, "adopted": not why, "reason": why or source})
         if why:
             log.warning("colmap: estimated intrinsics not adopted: %s", why)
             self.camera = {**self.camera, "history": history}
             return
         self._estimated = ((int(cam.width), int(cam.height)), params)
         self.camera = {"model": cam.model.name, "params": params, "width": int(cam.width), "height": int(cam.height),
-                       "source": source, "history": history}
+                       "source": source, "spread_deg": spread, "history": history}
         log.info("colmap: %s camera %s: %s", cam.model.name, source, " ".join(f"{v:.4g}" for v in params))
 
     def _keep_features(self, db: Path, rec) -> Path:
@@ -657,9 +735,8 @@ class ColmapBackbone(Backbone):
                                       "mean_reprojection_error": rec.compute_mean_reprojection_error(),
                                       **({"anchor_frames": anchor} if anchor else {}),
                                       **({"folded_attempts": self._folded_attempts} if self._folded_attempts else {}),
-                                      **({"folded_pairs": [[int(c.first[:-4]), int(c.second[:-4]), round(c.agree, 3),
-                                                            round(c.best, 3), round(c.rotation_deg, 2)]
-                                                           for c in self._folds]} if self._folds else {})})
+                                      **({"folded_pairs": [_pair_record(c) for c in self._folds]}
+                                         if self._folds else {})})
 
 
 def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:

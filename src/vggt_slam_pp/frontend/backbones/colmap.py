@@ -18,9 +18,10 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
   the image centre), then refined to the full model by one bundle adjustment, kept only when it stays
   near the constrained estimate (``FULL_MODEL_TOLERANCE``). Eight free intrinsics on a forward drive gave
   fx 416 / fy 652 px. Forward motion hardly constrains the focal length, rotation does: a later sound
-  submap that turns at least twice as much as the one the camera came from refines it (``_refocus``). When every attempt with the held camera is folded (below) or registers fewer
-  than half the frames, the submap is mapped again with the camera estimated, and a sane estimate from
-  a fold-free reconstruction replaces the held one.
+  submap that turns at least twice as much as the one the camera came from refines it (``_refocus``).
+  When every attempt with the held camera is folded (below) or registers fewer than half the frames,
+  the submap is mapped again with the camera estimated, and a sane estimate from a fold-free
+  reconstruction replaces the held one.
 * Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
 
 The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there, after scaling it so that
@@ -365,8 +366,9 @@ class ColmapBackbone(Backbone):
             if names.index(best_folds[0].second) >= len(names) // 2:
                 self._cut = best_folds[0].second
             log.warning("colmap: every attempt at keyframes %d..%d is folded (%s); %s", *self._span,
-                        _describe(best_folds, self.fold_check), f"the keyframes from {self._cut[:-4]} on are left unregistered"
-                        if self._cut else "kept: the contradiction is in the submap's first half")
+                        _describe(best_folds, self.fold_check),
+                        f"the keyframes from {self._cut[:-4]} on are left unregistered" if self._cut
+                        else "kept: the contradiction is in the submap's first half")
         return best, names
 
     def _reestimate(self, db: Path, images: Path, out: Path, attempt: int):
@@ -447,10 +449,11 @@ class ColmapBackbone(Backbone):
     def _refocus(self, rec, S: int):
         """A held camera estimated on a submap that hardly turned (the focal length is observable from
         rotation, hardly from forward motion) is refined on ``rec``, a sound submap mapped with it that turns
-        at least ``REFOCUS["spread_ratio"]`` times as much (and ``REFOCUS["min_spread_deg"]``): one bundle adjustment with one focal length and
-        two radial terms free (principal point held). When the focal length moves by at least
-        ``REFOCUS["min_change"]``, the reprojection error drops and the estimate is sane, ``rec`` becomes the
-        refined reconstruction and its camera is held from now on; otherwise ``rec`` is returned as it is."""
+        at least ``REFOCUS["spread_ratio"]`` times as much (and ``REFOCUS["min_spread_deg"]``): one bundle
+        adjustment with one focal length and two radial terms free (principal point held). When the focal
+        length moves by at least ``REFOCUS["min_change"]``, the reprojection error drops and the estimate is
+        sane, ``rec`` becomes the refined reconstruction and its camera is held from now on; otherwise
+        ``rec`` is returned as it is."""
         import pycolmap
 
         spread = _view_spread(rec)
@@ -491,8 +494,9 @@ class ColmapBackbone(Backbone):
         tcam = next(iter(trial.cameras.values()))
         tcam.model = "OPENCV"
         tcam.params = params
-        self._adopt_camera(trial, S, f"refined on keyframes {self._span[0]}..{self._span[1]} (turning {spread:.0f} deg, "
-                                     f"the previous estimate's submap {self.camera.get('spread_deg', 0.0):.0f} deg)")
+        self._adopt_camera(trial, S, f"refined on keyframes {self._span[0]}..{self._span[1]} (turning "
+                                     f"{spread:.0f} deg, the previous estimate's submap "
+                                     f"{self.camera.get('spread_deg', 0.0):.0f} deg)")
         return trial
 
     def _check(self, rec, db: Path) -> list[PairCheck]:

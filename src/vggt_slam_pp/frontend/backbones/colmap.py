@@ -94,8 +94,8 @@ def _describe(folds: list[PairCheck], config: FoldCheckConfig | None = None) -> 
                      f"{worst.rotation_deg:.1f} deg ({worst.agree:.0%} of matches explained, two-view {worst.best:.0%})")
     if cut:
         c = cut[0]
-        parts.append(f"{len(cut)} keyframe pair(s) from {c.first[:-4]} share no structure ({c.shared_points} "
-                     f"points for {c.matches} matches: their distance, hence the scale, is unconstrained)")
+        parts.append(f"{len(cut)} keyframe pair(s) from {c.first[:-4]} share no structure ({c.shared_points} point(s) "
+                     f"for {c.matches} matches: their distance, hence the scale, is unconstrained)")
     return "; ".join(parts)
 
 

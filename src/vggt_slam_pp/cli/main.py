@@ -292,7 +292,12 @@ def _print_summary(report: dict, out) -> None:
         line = f"ATE rmse (Sim(3)-aligned, keyframes): odometry {report['ate_rmse_odometry']:.4f}"
         if "ate_rmse" in report:
             red = 100 * report.get("ate_reduction", 0.0)
-            change = f"{red:.1f} % lower" if red >= 0 else f"{-red:.1f} % higher: the loops did not help"
+            if not np.isfinite(red) or abs(red) < 0.05:
+                change = "unchanged"
+            elif red > 0:
+                change = f"{red:.1f} % lower"
+            else:
+                change = f"{-red:.1f} % higher" + (": the loops did not help" if report.get("loops_accepted") else "")
             line += f", corrected {report['ate_rmse']:.4f} ({change})"
         print(line)
     files = "keyframes_odometry.txt/.kitti, frames_odometry.txt/.kitti, frames.csv, report.json, config.json"

@@ -222,15 +222,22 @@ def extrapolated_edge(prev_id: int, prev: SubmapPrediction, curr_id: int, curr: 
                       cause: str, n: int = 0) -> OdometryEdge:
     """The last resort, flagged ``degraded``: the first shared keyframe's camera is assumed to be where
     the previous submap put it (its pose there, or the nearest registered neighbour's), and the scale is
-    the ratio of the two submaps' median point depths around the overlap (1 when unknown)."""
+    the ratio of the two submaps' median point depths on the keyframes they share (both have points
+    there), else around the overlap (the previous submap's last and the current one's first keyframes),
+    1 when unknown."""
     where = {int(f): i for i, f in enumerate(prev.frame_indices)}
     ic = next((i for i, f in enumerate(curr.frame_indices) if int(f) in where and curr.valid[i]), None)
     if ic is None:
         ic = next(i for i, f in enumerate(curr.frame_indices) if int(f) in where)
     ip = where[int(curr.frame_indices[ic])]
-    k = max(1, min(4, prev.num_frames // 2, curr.num_frames // 2))
-    d_prev = _median_depth(prev, range(prev.num_frames - k, prev.num_frames))
-    d_curr = _median_depth(curr, range(k))
+    both = [(where[int(f)], i) for i, f in enumerate(curr.frame_indices) if int(f) in where
+            and prev.valid[where[int(f)]] and len(prev.points[where[int(f)]]) and curr.valid[i] and len(curr.points[i])]
+    d_prev = _median_depth(prev, [a for a, _ in both])
+    d_curr = _median_depth(curr, [b for _, b in both])
+    if not (np.isfinite(d_prev) and np.isfinite(d_curr)):
+        k = max(1, min(4, prev.num_frames // 2, curr.num_frames // 2))
+        d_prev = _median_depth(prev, range(prev.num_frames - k, prev.num_frames))
+        d_curr = _median_depth(curr, range(k))
     s = d_prev / d_curr if np.isfinite(d_prev) and np.isfinite(d_curr) and d_curr > 0 else 1.0
     T = se3_inverse(prev.T_cam_submap[ip]) @ make_sim3(s, np.eye(3), np.zeros(3)) @ curr.T_cam_submap[ic]
     log.warning("odometry %d -> %d degraded (%s): motion extrapolated through frame %d, scale %.3g from "

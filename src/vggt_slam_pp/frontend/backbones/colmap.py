@@ -7,7 +7,7 @@ registered into the previous submap by the incremental mapper (``mapper="increme
 docs/frontend.md ("Chaining COLMAP submaps") has the measurements behind the default.
 
 Matching: all pairs within the submap (``matcher="exhaustive"``, default) or sequential with an
-``overlap`` of 10 (``"sequential"``, the SPEC's wording). A submap has only 33 images (528 pairs), and
+``overlap`` of 10 (``"sequential"``, the SPEC's wording). A submap has only 33-40 images (528-780 pairs), and
 on the EuRoC excerpt all-pairs matching lowered the odometry ATE from 0.057 to 0.048 m (calibrated)
 and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the default.
 
@@ -453,7 +453,10 @@ class ColmapBackbone(Backbone):
         adjustment with one focal length and two radial terms free (principal point held). When the focal
         length moves by at least ``REFOCUS["min_change"]``, the reprojection error drops and the estimate is
         sane, ``rec`` becomes the refined reconstruction and its camera is held from now on; otherwise
-        ``rec`` is returned as it is."""
+        ``rec`` is returned as it is. The refined camera has fx = fy and no tangential terms (a turning car
+        hardly pitches, so a separate fy is not observable: docs/frontend.md). No point filter follows, unlike
+        ``_full_model``: the focal length moves by a few percent and the radial terms stay small. Submaps
+        registered into the previous one (``anchored``, incremental mapper) keep the held camera."""
         import pycolmap
 
         spread = _view_spread(rec)

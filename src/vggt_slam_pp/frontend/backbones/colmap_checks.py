@@ -27,7 +27,7 @@ A pair is *inconsistent* when
   (``shared_points < min_shared_fraction * matches``). Two blocks of keyframes joined there have no
   common structure, so the distance between them, hence their relative scale, is unconstrained: on the
   rendered drive the global mapper placed keyframe 499 17 m from 497 (1.5 m in truth), while the
-  forward motion's epipolar geometry still fitted. Sound consecutive pairs share 30-90 % of their
+  forward motion's epipolar geometry still fitted. Sound consecutive pairs share 30-87 % of their
   matches as points.
 
 Measured margins are in docs/frontend.md ("Folded submaps").

@@ -174,6 +174,34 @@ def test_a_reconstruction_in_two_unconnected_blocks_is_found_and_mapped_again(mo
     assert ratio.max() / ratio.min() < 1.2  # no step out of proportion
 
 
+def test_a_break_that_no_point_spans_is_found_even_where_the_pair_has_too_few_matches_to_judge(
+        monkeypatch, straight):
+    """Fault test: the first attempt loses every 3-D point seen on both sides of its middle pair, and the
+    pair-by-pair checks are off (``min_matches`` out of reach, as for a pair with few matches): the break
+    is still found, because nothing spans it, and the submap is mapped again."""
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+    from vggt_slam_pp.frontend.backbones.colmap_checks import FoldCheckConfig
+
+    original = ColmapBackbone._map
+
+    def mapped(self, db, images, out, angle, seed_offset, attempt, refine):
+        rec = original(self, db, images, out, angle, seed_offset, attempt, refine)
+        if rec is not None and attempt == 0:
+            names = {im.image_id: im.name for im in rec.images.values() if im.has_pose}
+            cut = sorted(names.values())[len(names) // 2]
+            for pid in list(rec.points3D):
+                seen = {names[e.image_id] < cut for e in rec.points3D[pid].track.elements if e.image_id in names}
+                if seen == {True, False}:
+                    rec.delete_point3D(pid)
+        return rec
+
+    monkeypatch.setattr(ColmapBackbone, "_map", mapped)
+    frames = [straight[i] for i in range(0, 36, 3)]
+    backbone = ColmapBackbone(calibrated=True, keep_features=False, fold_check=FoldCheckConfig(min_matches=10**6))
+    pred = backbone.predict(frames)
+    assert pred.info["folded_attempts"] == 1 and "folded_pairs" not in pred.info and pred.valid.all()
+
+
 def test_a_submap_folded_in_every_attempt_keeps_only_its_sound_part(monkeypatch, straight):
     """Fault test: every attempt folded. The keyframes from the contradicted pair on are marked unregistered
     (the front-end starts the next submap with them) and the pair is reported; what is kept is sound."""

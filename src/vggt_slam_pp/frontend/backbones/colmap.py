@@ -95,7 +95,8 @@ def _describe(folds: list[PairCheck], config: FoldCheckConfig | None = None) -> 
     if cut:
         c = cut[0]
         parts.append(f"{len(cut)} keyframe pair(s) from {c.first[:-4]} share no structure ({c.shared_points} point(s) "
-                     f"for {c.matches} matches: their distance, hence the scale, is unconstrained)")
+                     f"for {c.matches} matches, {c.spanning_points} seen on both sides: their distance, hence the "
+                     f"scale, is unconstrained)")
     return "; ".join(parts)
 
 
@@ -105,7 +106,7 @@ def _pair_record(c: PairCheck) -> dict:
         return round(float(v), digits) if np.isfinite(v) else None
     return {"first": int(c.first[:-4]), "second": int(c.second[:-4]), "agree": num(c.agree, 3),
             "two_view": num(c.best, 3), "rotation_deg": num(c.rotation_deg, 2), "matches": c.matches,
-            "shared_points": c.shared_points}
+            "shared_points": c.shared_points, "spanning_points": c.spanning_points}
 
 
 def _sound_images(rec, folds: list[PairCheck]) -> int:

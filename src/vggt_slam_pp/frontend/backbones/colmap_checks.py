@@ -24,7 +24,8 @@ A pair is *inconsistent* when
   needed: a pair with little translation fits any translation direction, and its two-view rotation can
   be poor while the reconstruction still explains its matches; or
 * *disconnected*: the reconstruction triangulated almost none of the pair's matches as shared points
-  (``shared_points < min_shared_fraction * matches``). Two blocks of keyframes joined there have no
+  (``shared_points < min_shared_fraction * matches``), or hardly any 3-D point is seen on both sides of
+  the pair (``spanning_points < min_spanning_points``; also judged for pairs with too few matches). Two blocks of keyframes joined there have no
   common structure, so the distance between them, hence their relative scale, is unconstrained: on the
   rendered drive the global mapper placed keyframe 499 17 m from 497 (1.5 m in truth), while the
   forward motion's epipolar geometry still fitted. Sound consecutive pairs share 30-87 % of their
@@ -55,12 +56,14 @@ class PairCheck:
     best: float  # fraction explained by the pair's own two-view estimate
     rotation_deg: float  # angle between the two relative rotations (NaN without a two-view estimate)
     shared_points: int = -1  # 3-D points of the reconstruction observed in both keyframes (-1: not counted)
+    spanning_points: int = -1  # 3-D points seen on both sides of the pair (before and from its second image on)
 
     def folded(self, config: FoldCheckConfig) -> bool:
         return self.best - self.agree > config.margin and self.rotation_deg > config.min_rotation_deg
 
     def disconnected(self, config: FoldCheckConfig) -> bool:
-        return 0 <= self.shared_points < config.min_shared_fraction * self.matches
+        return (0 <= self.shared_points < config.min_shared_fraction * self.matches
+                or 0 <= self.spanning_points < config.min_spanning_points)
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,7 @@ class FoldCheckConfig:
     margin: float = 0.1  # best - agree above this ...
     min_rotation_deg: float = 2.0  # ... and a rotation difference above this: folded
     min_shared_fraction: float = 0.05  # fewer shared 3-D points than this fraction of the matches: disconnected
+    min_spanning_points: int = 10  # fewer 3-D points seen on both sides of a pair (any pair): disconnected
 
 
 def _cam_from_world(image) -> np.ndarray:
@@ -115,12 +119,16 @@ def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfi
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     out: list[PairCheck] = []
     db = pycolmap.Database.open(Path(database))
+    spanning = _spanning(rec, images)
+    nan = float("nan")
     try:
-        for a, b in zip(images, images[1:], strict=False):
-            if not db.exists_two_view_geometry(a.image_id, b.image_id):
-                continue
-            m = np.asarray(db.read_two_view_geometry(a.image_id, b.image_id).inlier_matches).reshape(-1, 2)
-            if len(m) < config.min_matches:
+        for k, (a, b) in enumerate(zip(images, images[1:], strict=False)):
+            m = np.zeros((0, 2), int)
+            if db.exists_two_view_geometry(a.image_id, b.image_id):
+                m = np.asarray(db.read_two_view_geometry(a.image_id, b.image_id).inlier_matches).reshape(-1, 2)
+            if len(m) < config.min_matches:  # too few matches to judge the pair; only whether anything spans it
+                if spanning[k] < config.min_spanning_points:
+                    out.append(PairCheck(a.name, b.name, len(m), nan, nan, nan, -1, int(spanning[k])))
                 continue
             cam_a, cam_b = rec.cameras[a.camera_id], rec.cameras[b.camera_id]
             p1 = np.asarray(db.read_keypoints(a.image_id))[m[:, 0], :2].astype(np.float64)
@@ -140,10 +148,23 @@ def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfi
                 best = float((sampson(_essential(T_tv), x1, x2) * focal < config.max_error_px).mean())
                 rotation = _angle_deg(T_rec[:3, :3].T @ T_tv[:3, :3])
             shared = len(_point_ids(a) & _point_ids(b))
-            out.append(PairCheck(a.name, b.name, len(m), agree, best, rotation, shared))
+            out.append(PairCheck(a.name, b.name, len(m), agree, best, rotation, shared, int(spanning[k])))
     finally:
         db.close()
     return out
+
+
+def _spanning(rec, images) -> np.ndarray:
+    """[len(images) - 1]: for each pair of consecutive ``images`` (k, k + 1), the 3-D points of ``rec`` whose
+    track has images on both sides of it (one at k or before, one at k + 1 or after)."""
+    pos = {im.image_id: k for k, im in enumerate(images)}
+    diff = np.zeros(len(images) + 1, np.int64)
+    for point in rec.points3D.values():
+        ks = [pos[e.image_id] for e in point.track.elements if e.image_id in pos]
+        if len(ks) > 1 and min(ks) < max(ks):
+            diff[min(ks)] += 1
+            diff[max(ks)] -= 1
+    return np.cumsum(diff)[:max(len(images) - 1, 0)]
 
 
 def _point_ids(image) -> set[int]:

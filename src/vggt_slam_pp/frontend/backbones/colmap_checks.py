@@ -25,11 +25,11 @@ A pair is *inconsistent* when
   be poor while the reconstruction still explains its matches; or
 * *disconnected*: the reconstruction triangulated almost none of the pair's matches as shared points
   (``shared_points < min_shared_fraction * matches``), or hardly any 3-D point is seen on both sides of
-  the pair (``spanning_points < min_spanning_points``; also judged for pairs with too few matches). Two blocks of keyframes joined there have no
-  common structure, so the distance between them, hence their relative scale, is unconstrained: on the
-  rendered drive the global mapper placed keyframe 499 17 m from 497 (1.5 m in truth), while the
-  forward motion's epipolar geometry still fitted. Sound consecutive pairs share 30-87 % of their
-  matches as points.
+  the pair (``spanning_points < min_spanning_points``; also judged for pairs with too few matches). Two
+  blocks of keyframes joined there have no common structure, so the distance between them, hence their
+  relative scale, is unconstrained: on the rendered drive the global mapper placed keyframe 499 17 m
+  from 497 (1.5 m in truth), while the forward motion's epipolar geometry still fitted. Sound
+  consecutive pairs share 30-87 % of their matches as points.
 
 Measured margins are in docs/frontend.md ("Folded submaps").
 """
@@ -112,7 +112,7 @@ def check_pairs(rec, database: str | Path, seed: int = 0, config: FoldCheckConfi
                 ) -> list[PairCheck]:
     """Every pair of consecutive registered images (by name) of ``rec`` with enough verified matches in
     ``database`` (the feature database ``rec`` was built from: same image ids), checked as the module
-    docstring says."""
+    docstring says; a pair with fewer matches only when hardly any 3-D point spans it."""
     import pycolmap
 
     config = config or FoldCheckConfig()

@@ -25,17 +25,18 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
 * Calibrated: the dataset's intrinsics and distortion are given to the camera and kept fixed.
 
 The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there, after scaling it so that
-the camera centres' 10th-90th percentile extent is 10 units). Observations are the triangulated keypoints of each image: ``keys`` are
-SIFT keypoint indices, identical for the same image in two submaps, so the shared keyframes link
-submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper). Confidence per
+the camera centres' 10th-90th percentile extent is 10 units). Observations are the triangulated
+keypoints of each image: ``keys`` are SIFT keypoint indices, identical for the same image in two
+submaps, so the shared keyframes link submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper). Confidence per
 point: ``track_length / (1 + reprojection error)``.
 
 Failures degrade instead of raising. Mapping is retried (``ATTEMPTS``: the global mapper, then the
 incremental one with initial triangulation angles 16 -> 4 -> 2 degrees and other seeds) while keyframes
 stay unregistered or the reconstruction is *folded*: it contradicts the verified matches of a pair of
 consecutive keyframes (``colmap_checks.py``). The attempt kept registers most frames before any
-contradicted pair (``_better``). A fold left in every attempt splits the submap there when that keeps at least its first half
-(the rest starts the next submap), and is otherwise kept and reported (``info["folded_pairs"]``).
+contradicted pair (``_better``). A fold left in every attempt splits the submap there when that keeps
+at least its first half (the rest starts the next submap), and is otherwise kept and reported
+(``info["folded_pairs"]``).
 Frames left unregistered are marked ``valid=False`` with the nearest registered neighbour's pose (the
 front-end splits them off or bridges, see ``frontend.py``), and a submap that cannot be reconstructed
 at all is returned with every frame invalid (identity poses, no points).
@@ -415,19 +416,11 @@ class ColmapBackbone(Backbone):
         cam.model = self.camera_model
         cam.params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
         refined = pycolmap.Reconstruction(rec)
-        ba = pycolmap.BundleAdjustmentOptions()
-        ba.refine_focal_length = ba.refine_extra_params = True
-        ba.refine_principal_point = self.refine_principal_point
-        ba.print_summary = False
-        ba.ceres.solver_options.num_threads = 1 if self.deterministic else self.num_threads
-        level = pycolmap.logging.minloglevel
         try:
-            pycolmap.bundle_adjustment(refined, ba)
-            pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
+            self._refine_camera(refined, self.refine_principal_point)
             # points the refined distortion cannot project any more (beyond its valid radius) are dropped
             pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
-            pycolmap.logging.minloglevel = level
             log.warning("colmap: refining the %s camera failed (%s); keeping the %s estimate", self.camera_model,
                         exc, self.estimate_model)
             return rec
@@ -446,6 +439,22 @@ class ColmapBackbone(Backbone):
         log.info("colmap: %s camera refined from the %s estimate (f %.1f px)", self.camera_model,
                  self.estimate_model, f)
         return refined
+
+    def _refine_camera(self, rec, refine_principal_point: bool) -> None:
+        """One bundle adjustment of ``rec`` in place with its camera's focal length and distortion free (and
+        the principal point when asked); single-threaded when deterministic. Raises what pycolmap raises."""
+        import pycolmap
+
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = ba.refine_extra_params = True
+        ba.refine_principal_point = refine_principal_point
+        ba.print_summary = False
+        ba.ceres.solver_options.num_threads = 1 if self.deterministic else self.num_threads
+        level = pycolmap.logging.minloglevel
+        try:
+            pycolmap.bundle_adjustment(rec, ba)
+        finally:
+            pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
 
     def _refocus(self, rec, S: int):
         """A held camera estimated on a submap that hardly turned (the focal length is observable from
@@ -472,19 +481,11 @@ class ColmapBackbone(Backbone):
         tcam = next(iter(trial.cameras.values()))
         tcam.model = "RADIAL"
         tcam.params = [0.5 * (fx + fy), cx, cy, k1, k2]
-        ba = pycolmap.BundleAdjustmentOptions()
-        ba.refine_focal_length = ba.refine_extra_params = True
-        ba.refine_principal_point = False
-        ba.print_summary = False
-        ba.ceres.solver_options.num_threads = 1 if self.deterministic else self.num_threads
-        level = pycolmap.logging.minloglevel
         try:
-            pycolmap.bundle_adjustment(trial, ba)
+            self._refine_camera(trial, refine_principal_point=False)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
             log.warning("colmap: refining the held camera on keyframes %d..%d failed (%s)", *self._span, exc)
             return rec
-        finally:
-            pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
         f, _, _, r1, r2 = [float(v) for v in next(iter(trial.cameras.values())).params]
         params = [f, f, cx, cy, r1, r2, 0.0, 0.0]
         held = 0.5 * (fx + fy)

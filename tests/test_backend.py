@@ -258,6 +258,47 @@ def test_ground_offset_is_local_so_a_slope_is_no_offset(rng):
     assert _ground_offset(lifted + [100.0, 0.0, 0.0], tree, slope[:2000, 2], 1.0) == 0.0  # no ground in common
 
 
+def _street(seed: int, boxes: int = 4) -> np.ndarray:
+    """A stretch of street [N,3] as a forward camera sees it: 40 m of ground, a few low boxes."""
+    r = np.random.default_rng(seed)
+    ground = np.c_[r.uniform(0, 40, 8000), r.uniform(-6, 6, 8000), r.normal(0, 0.02, 8000)]
+    solids = [np.c_[r.uniform(x, x + 1, 300), r.uniform(y, y + 1, 300), r.uniform(0, 1.5, 300)]
+              for x, y in r.uniform([0, -6], [40, 6], (boxes, 2))]
+    return np.concatenate([ground, *solids])
+
+
+def test_own_up_reads_the_ground_of_the_submap_not_the_drifted_estimate(rng):
+    from vggt_slam_pp.backend.search import own_up
+
+    place = _place(rng)
+    tilted = so3_exp(np.array([np.radians(4.0), 0.0, 0.0])) @ [0.0, 0.0, 1.0]
+    assert np.degrees(np.arccos(own_up(place, tilted, 1.0)[2])) < 0.1  # the boxes' tops and walls do not count
+    wall = np.c_[rng.uniform(0, 30, 3000), np.zeros(3000), rng.uniform(0, 10, 3000)]
+    assert np.allclose(own_up(wall, [0.0, 0.0, 1.0], 1.0), [0.0, 0.0, 1.0])  # no ground: the guess
+
+
+def test_a_revisit_is_registered_when_the_estimate_has_drifted_in_tilt(rng):
+    """Odometry drifts in pitch and roll too (3-4 deg after a few hundred submaps of the default profile).
+    Levelled by such an estimate a submap's far ground stands above the structure height: it looked
+    like structure, a true revisit failed the structure test and wrong ones passed on ground alone."""
+    from vggt_slam_pp.backend.registration import LoopBounds, RegistrationConfig
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    street = _street(1)
+    T_q = np.eye(4)
+    T_q[:3, :3] = so3_exp(np.array([0.0, np.radians(4.0), 0.0]))  # the query's estimate tilted by 4 deg
+    bounds = LoopBounds(max_log_scale=0.2, max_translation=20.0, max_yaw_deg=30.0)
+    again = street + rng.normal(0, 0.02, street.shape)
+    r = register_loop(5, 1, again, street, T_q, np.eye(4), plane, 2.0, bounds=bounds)
+    assert r.accepted, r.reason
+    assert np.allclose(r.T_match_query, np.eye(4), atol=0.05)
+    old = register_loop(5, 1, again, street, T_q, np.eye(4), plane, 2.0, bounds=bounds,
+                        config=RegistrationConfig(own_up=False))
+    assert not old.accepted and "structure overlap" in old.reason  # levelled by the estimate: refused
+    other = register_loop(6, 1, _street(2), street, T_q, np.eye(4), plane, 2.0, bounds=bounds)
+    assert not other.accepted
+
+
 def test_isolated_points_are_removed_before_registration(rng):
     from vggt_slam_pp.backend.registration import remove_isolated
 

@@ -2,7 +2,8 @@
 
 A loop candidate (query submap q, match m) is registered from the two submaps' own points, each in
 its own frame; the result is the measurement ``T_match_query`` itself. The current estimate gives
-the up direction (the ground plane's normal in each frame), the unit (``tile_size`` in each submap's
+a first up direction (the ground plane's normal in each frame; each submap's own ground refines it:
+:func:`~vggt_slam_pp.backend.search.own_up`), the unit (``tile_size`` in each submap's
 scale), one initial guess among the others and, through :class:`LoopBounds`, how far odometry can
 have drifted; nothing else.
 
@@ -48,6 +49,7 @@ from vggt_slam_pp.backend.search import (
     colour_match,
     free_space_agreement,
     hue_vectors,
+    own_up,
     search_alignments,
     up_frame,
 )
@@ -96,6 +98,8 @@ class RegistrationConfig:
     ambiguity_ratio: float = 0.85  # a distinct alignment this close to the best (agreement x structure
     # overlap): ambiguous
     normals_k: int = 10
+    own_up: bool = True  # each submap levelled by its own ground (search.own_up), not by the estimate's up
+    max_up_tilt_deg: float = 15.0  # how far its own ground's normal may be from the estimate's up
     use_colour: bool = True  # structure agrees by its image colour too (when the points have colours)
     full_saturation: float = 0.08  # chromaticity distance from grey at which a point's hue counts fully
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
@@ -437,7 +441,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         n_planar = int(inl.sum())
         if n_planar >= c.min_planar_inliers:
             guesses["planar"] = sim3_inverse(T_world_match) @ planar_to_world(plane, T2) @ T_world_query
-    up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal
+    up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal  # the estimate's up, in each submap's frame
+    if c.own_up:  # each submap's up from its own ground: the estimate's drifts (module docstring)
+        up_q = own_up(src, up_q, float(tile_size) / float(s_q), c.max_up_tilt_deg, seed=query)
+        up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst)
     for k, (G, _) in enumerate(found):

@@ -55,6 +55,51 @@ def up_frame(up: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
+def own_up(points: np.ndarray, up_guess: np.ndarray, unit: float, max_tilt_deg: float = 15.0,
+           inlier_tiles: float = 0.1, low_percentile: float = 60.0, min_support: float = 0.3,
+           iterations: int = 200, seed: int = 0) -> np.ndarray:
+    """The up direction [3] of a submap read from its own ground: the normal of the plane, within
+    ``max_tilt_deg`` of ``up_guess`` (the estimate's), that holds most of the submap's lower points
+    (below its ``low_percentile`` height along the guess) within ``inlier_tiles`` (``unit``: one tile in
+    this cloud's frame), refined by least squares on them. ``up_guess`` (normalised) when no such plane
+    holds ``min_support`` of those points (no visible ground).
+
+    The estimate's up drifts with odometry (3-4 deg of tilt after a few hundred submaps of the default
+    profile): levelled by it, a submap's far ground stands above the structure height and counts as
+    structure, and two such grounds "agree" at wrong alignments (docs/backend.md)."""
+    g = np.asarray(up_guess, float)
+    g = g / np.linalg.norm(g)
+    P = np.asarray(points, float).reshape(-1, 3)
+    P = P[np.isfinite(P).all(axis=1)]
+    if len(P) < 10:
+        return g
+    h = P @ g
+    low = P[h <= np.percentile(h, low_percentile)]
+    rng = np.random.default_rng(seed)
+    if len(low) > 4000:
+        low = low[rng.choice(len(low), 4000, replace=False)]
+    thr, cos_max = inlier_tiles * float(unit), float(np.cos(np.radians(max_tilt_deg)))
+    triples = rng.integers(0, len(low), size=(iterations, 3))
+    a, b, c = low[triples[:, 0]], low[triples[:, 1]], low[triples[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n, a = n[ok] / norm[ok, None], a[ok]
+    n *= np.sign(n @ g)[:, None]
+    ok = n @ g >= cos_max
+    n, a = n[ok], a[ok]
+    if not len(n):
+        return g
+    counts = (np.abs((low[None] - a[:, None]) @ n[..., None])[..., 0] < thr).sum(axis=1)
+    k = int(np.argmax(counts))
+    inliers = low[np.abs((low - a[k]) @ n[k]) < thr]
+    if len(inliers) < max(3, min_support * len(low)):
+        return g
+    _, _, Vt = np.linalg.svd(inliers - inliers.mean(0), full_matrices=False)
+    up = Vt[2] * np.sign(Vt[2] @ g)
+    return up if up @ g >= cos_max else g
+
+
 def hue_vectors(colors: np.ndarray | None, n: int, full_saturation: float = 0.08, min_value: int = 24
                 ) -> np.ndarray:
     """Each point's hue as a 2-D vector [n,2]: the direction of its chromaticity ``rgb / (r + g + b)``

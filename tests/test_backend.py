@@ -510,6 +510,8 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     closer.loops = [true[0]]
     assert closer.consistent(true[1]) == [0] and closer.consistent(true[2]) == [0]
     assert closer.consistent(wrong) == []
+    # the same query onto the neighbouring match agrees too, but it is one placement tested twice
+    assert closer.consistent(loop(10, 3, sim3_inverse(P[3]) @ C @ P[10])) == []
     closer.loops = [wrong]
     assert closer.consistent(true[1]) == []
     far = loop(13, 9, sim3_inverse(P[9]) @ C @ P[13])  # too far from the others to be compared

@@ -625,6 +625,19 @@ def test_map_ply_written_as_a_stream_equals_the_map_built_at_once(loop_sequence,
     assert np.allclose(dem["heights"], whole, atol=1e-5, equal_nan=True)
 
 
+def test_a_lagging_worker_defers_queries_in_runs_not_every_other_one():
+    """Over the catch-up lag the worker defers until it is back at half of it, so deferred and live
+    queries each come in runs of consecutive submaps (the sequence prior needs the predecessor's)."""
+    from vggt_slam_pp.backend.worker import _deferring
+
+    decisions, was = [], False
+    for backlog in (100, 129, 128, 120, 90, 64, 70, 128, 129, 127):
+        was = _deferring(was, backlog, 128)
+        decisions.append(was)
+    assert decisions == [False, True, True, True, True, False, False, False, True, True]
+    assert not any(_deferring(w, 10_000, 0) for w in (False, True))  # lag 0: never
+
+
 def test_a_slow_backend_never_blocks_the_frontend_and_defers_queries_without_dropping_them(loop_sequence, tmp_path):
     """A back-end made slow on purpose (0.4 s per submap, fault injection) falls behind: the front-end
     hands every submap over without waiting, the worker catches up by adding the oldest waiting submaps

@@ -326,7 +326,25 @@ def test_sequence_prior_adds_the_previous_match_and_its_neighbours(rng):
     assert {e.match for e in off.edges} == {e.match for e in out.edges if e.source == "votes"}
     # anchored at 5, its neighbour 6 is one of query 8's excluded recent submaps and stays out
     stage.confirm(7, [5])
-    stage.confirm(6, [0])  # not the last query: ignored
+    stage.confirm(6, [0])  # query 6's matches anchor query 7's prior, not query 8's
     nxt = stage.process(8, regions[0], cams(regions[0]))
     assert {e.match for e in nxt.edges if e.source == "sequence"} <= {4, 5} <= {e.match for e in nxt.edges}
     assert all(e.match < 8 - stage.config.index.exclude_recent for e in nxt.edges)
+
+
+def test_sequence_prior_follows_the_submaps_not_the_order_of_the_queries(rng):
+    """A worker catching up defers the oldest queries and runs them later: a deferred query still follows
+    its predecessor's matches, and a live query whose predecessor was deferred follows nothing."""
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
+
+    regions = [_region(rng, 16.0 * k) for k in range(7)]
+    cams = lambda p: p.mean(0, keepdims=True) + [0.0, 0.0, 5.0]  # noqa: E731
+    stage = CovisibilityStage.create(HogEncoder(), CovisibilityConfig(index=IndexConfig(top_k=2)))
+    for k in range(5):
+        stage.process(k, regions[k], cams(regions[k]))
+    stage.confirm(4, [1])  # the back-end verified 4 -> 1
+    live = stage.process(6, regions[6], cams(regions[6]))  # 5's query was deferred
+    assert not [e for e in live.edges if e.source == "sequence"]
+    late = stage.process(5, regions[5], cams(regions[5]), insert=False)  # 5's deferred query, after 6's
+    prior = {e.match for e in late.edges if e.source == "sequence"}
+    assert prior and prior <= {0, 1, 2} <= {e.match for e in late.edges}

@@ -131,7 +131,6 @@ class Backend:
         accepted: list[LoopResult] = []
         if len(points) >= 3 and not query and m.gallery.grid is not None:
             t0 = time.perf_counter()
-            self.stage.skip()
             if m.index_new:
                 m.index_layer(sid, m.gallery.describe(sid, m.layer_points(sid)))
             self.skipped.append(sid)
@@ -183,9 +182,7 @@ class Backend:
         at its current pose, as if it had just arrived; only older submaps can be its candidates."""
         t0 = time.perf_counter()
         sid, centres = self._deferred.popleft()
-        self.stage.skip()  # the sequence prior follows consecutive queries only
         accepted = self._query(sid, centres, self.map.store.get(sid), index=False)
-        self.stage.skip()
         if accepted:
             self._solve_for(sid, accepted)
         self.timings["deferred_s"] += time.perf_counter() - t0  # a subtotal: its parts are in the other timings

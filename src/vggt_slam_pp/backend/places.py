@@ -234,7 +234,9 @@ class CovisibilityStage:
     def __init__(self, gallery: Gallery) -> None:
         self.gallery = gallery
         self.config = gallery.config
-        self._previous: tuple[int, list[int]] | None = None  # (query, its matches) for the sequence prior
+        # query -> its matches, for the sequence prior of the next submap's query, which may run much later
+        # (deferred by a worker catching up): a few integers per submap
+        self._matches: dict[int, tuple[int, ...]] = {}
 
     @classmethod
     def create(cls, encoder: Encoder, config: CovisibilityConfig | None = None) -> CovisibilityStage:
@@ -286,7 +288,7 @@ class CovisibilityStage:
         if insert:
             g.add(submap_id, d)
         t["index_s"] = time.perf_counter() - t0
-        self._previous = (submap_id, [candidates[0].match] if candidates else [])
+        self._matches[submap_id] = (candidates[0].match,) if candidates else ()
         return StageResult(submap_id, d.layer, edges, candidates, t, d.keys[d.chip_ok], d.chips[d.chip_ok],
                            None if insert else d)
 
@@ -304,24 +306,23 @@ class CovisibilityStage:
                     best[e.match] = e
         return sorted(best.values(), key=lambda e: -e.score)[: self.config.index.top_k]
 
-    def skip(self) -> None:
-        """A submap was added without querying: the next query has no previous match to follow."""
-        self._previous = None
-
     def confirm(self, query: int, matches: list[int]) -> None:
         """The back-end verified loops ``query`` -> ``matches``: they (not the top candidate) anchor the
-        next query's sequence prior. Ignored unless ``query`` is the last processed submap."""
-        if self._previous is not None and self._previous[0] == query and matches:
-            self._previous = (query, [int(m) for m in matches])
+        sequence prior of the query of submap ``query + 1``. Ignored unless ``query`` has been queried."""
+        if query in self._matches and matches:
+            self._matches[query] = tuple(int(m) for m in matches)
 
     def _sequence_edges(self, submap_id: int, voted: set[int]) -> list[CovisibilityEdge]:
-        """Edges to the previous query's matches and their +-``sequence_neighbours`` neighbours that are
-        in the gallery, older than the excluded recent submaps and not voted already (score 0)."""
+        """Edges to the matches of the query of submap ``submap_id - 1`` and their +-``sequence_neighbours``
+        neighbours that are in the gallery, older than the excluded recent submaps and not voted already
+        (score 0). The prior follows the submaps, not the order of the queries: a worker catching up runs
+        the queries it deferred later, and there a deferred query still follows its predecessor's."""
         n = self.config.sequence_neighbours
-        if n < 0 or self._previous is None:
+        previous = self._matches.get(submap_id - 1)
+        if n < 0 or previous is None:
             return []
         newest = submap_id - self.config.index.exclude_recent
-        near = sorted({m + k for m in self._previous[1] for k in range(-n, n + 1)})
+        near = sorted({m + k for m in previous for k in range(-n, n + 1)})
         return [CovisibilityEdge(submap_id, m, 0.0, 0, "sequence") for m in near
                 if m < newest and m in self.gallery and m not in voted]
 

@@ -410,6 +410,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     s_m, R_m, _ = decompose_sim3(T_world_match)
     s_q, R_q, _ = decompose_sim3(T_world_query)
     unit = float(tile_size) / float(s_m)  # one tile in the match's frame
+    unit_q = float(tile_size) / float(s_q)  # one tile in the query's frame
     bounds = bounds or LoopBounds(c.max_scale_change, np.inf)
     max_log_scale = min(bounds.max_log_scale, c.max_scale_change)
 
@@ -443,7 +444,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             guesses["planar"] = sim3_inverse(T_world_match) @ planar_to_world(plane, T2) @ T_world_query
     up_q, up_m = R_q.T @ plane.normal, R_m.T @ plane.normal  # the estimate's up, in each submap's frame
     if c.own_up:  # each submap's up from its own ground: the estimate's drifts (module docstring)
-        up_q = own_up(src, up_q, float(tile_size) / float(s_q), c.max_up_tilt_deg, seed=query)
+        up_q = own_up(src, up_q, unit_q, c.max_up_tilt_deg, seed=query)
         up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst)
@@ -460,7 +461,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     # lifts its ground onto the match's buildings must not turn that ground into "structure"
     h_src = (src @ up_frame(up_q).T)[:, 2]
     ground_src = float(np.percentile(h_src, c.ground_percentile))
-    own_structure = h_src > ground_src + c.structure_height_tiles * float(tile_size) / float(s_q)
+    own_structure = h_src > ground_src + c.structure_height_tiles * unit_q
     own_ground = h_src <= ground_src
     own_structure_hue, n_own_structure = hue_src[own_structure], int(own_structure.sum())
     level = up_frame(up_m)  # the match's frame levelled: height is the last coordinate

@@ -299,6 +299,34 @@ def test_a_revisit_is_registered_when_the_estimate_has_drifted_in_tilt(rng):
     assert not other.accepted
 
 
+def test_camera_height_gives_the_loop_scale_of_a_steady_camera_and_none_of_a_flying_one(rng):
+    """Monocular submaps drift mostly in scale, and wrong scales score as well as the right one on
+    structure and free space (docs/experiments.md, session 19). A camera carried at one height above its
+    ground measures each submap's scale: the ratio of two submaps' heights is the loop's scale."""
+    from vggt_slam_pp.backend.registration import LoopBounds
+    from vggt_slam_pp.backend.search import camera_height
+
+    place = _place(rng)
+    cams = np.c_[np.linspace(5, 25, 8), np.full(8, 15.0), np.full(8, 1.6)]
+    assert abs(camera_height(place, cams, [0.0, 0.0, 1.0]) - 1.6) < 0.02
+    flying = cams.copy()
+    flying[:, 2] = np.linspace(1.0, 4.0, 8)
+    assert camera_height(place, flying, [0.0, 0.0, 1.0]) is None  # no steady height: no cue
+
+    k = 0.75  # the query submap's own scale has drifted by 0.75; the estimate does not know it
+    query = k * place + rng.normal(0, 0.01, place.shape)
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    bounds = LoopBounds(max_log_scale=0.4, max_translation=20.0, max_yaw_deg=30.0)
+    r = register_loop(5, 1, query, place, np.eye(4), np.eye(4), plane, 2.0, bounds=bounds,
+                      cameras_query=k * cams, cameras_match=cams)
+    assert r.accepted, r.reason
+    assert abs(np.cbrt(np.linalg.det(r.T_match_query[:3, :3])) * k - 1) < 0.02
+    lying = register_loop(5, 1, query, place, np.eye(4), np.eye(4), plane, 2.0, bounds=bounds,
+                          cameras_query=cams, cameras_match=cams)  # heights that say "no scale change"
+    # the cue is a constraint: whatever is accepted lies within its tolerance, never at the true x1.33
+    assert not lying.accepted or abs(np.log(np.cbrt(np.linalg.det(lying.T_match_query[:3, :3])))) <= 0.1 + 1e-9
+
+
 def test_isolated_points_are_removed_before_registration(rng):
     from vggt_slam_pp.backend.registration import remove_isolated
 

@@ -181,7 +181,8 @@ class LoopCloser:
         cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
-                             colors_query=colors, colors_match=cm)
+                             colors_query=colors, colors_match=cm, cameras_query=m.cameras.get(sid),
+                             cameras_match=m.cameras.get(match))
 
     def _wait(self, r: LoopResult) -> None:
         self._pending.append(len(self.loops))

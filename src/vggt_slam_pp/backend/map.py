@@ -61,6 +61,7 @@ class Map:
         self._stale: set[int] = set()  # layers that moved enough but wait for a refresh with budget left
         self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
         self.prior_poses: dict[int, np.ndarray] = {}  # a seeded map's submaps at their saved poses (its frame)
+        self.cameras: dict[int, np.ndarray] = {}  # keyframe camera centres [S,3] float32 per submap (its frame)
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
@@ -84,6 +85,8 @@ class Map:
             self.segment[sid] = self.segment[e.prev]
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
+        if camera_centers is not None:
+            self.cameras[sid] = np.asarray(camera_centers, np.float32).reshape(-1, 3)
         if e is not None and e.degraded:
             self.degraded_edges.add(e.prev)
         if e is not None:
@@ -135,6 +138,7 @@ class Map:
         for sm in saved.submaps:
             self.graph.add_node(sm.id, sm.T_world_submap)
             self.odometry_poses[sm.id] = sm.T_world_submap.copy()
+            self.cameras[sm.id] = np.asarray(sm.camera_centers, np.float32).reshape(-1, 3)
             first = sm.id if sm.id == 0 or not any(e.kind == "odometry" and e.j == sm.id for e in saved.edges) \
                 else self.segment[sm.id - 1]
             self.segment[sm.id] = first

@@ -49,6 +49,7 @@ from vggt_slam_pp.backend.search import (
     colour_match,
     free_space_agreement,
     hue_vectors,
+    camera_height,
     own_up,
     search_alignments,
     up_frame,
@@ -100,6 +101,10 @@ class RegistrationConfig:
     normals_k: int = 10
     own_up: bool = True  # each submap levelled by its own ground (search.own_up), not by the estimate's up
     max_up_tilt_deg: float = 15.0  # how far its own ground's normal may be from the estimate's up
+    height_cue: bool = True  # cameras at one height above their ground in both submaps: their ratio is the
+    # loop's scale (search.camera_height), searched within and verified against height_cue_tolerance
+    height_cue_tolerance: float = 0.1  # |log s| between the loop's scale and the cameras' height ratio
+    height_cue_max_spread: float = 0.1  # std / median of a submap's camera heights for a steady height
     use_colour: bool = True  # structure agrees by its image colour too (when the points have colours)
     full_saturation: float = 0.08  # chromaticity distance from grey at which a point's hue counts fully
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
@@ -387,12 +392,20 @@ def _ground_offset(src_ground: np.ndarray, dst_ground_tree: cKDTree, dst_ground_
     return float(np.median(src_ground[near, 2] - dst_ground_h[j[near]]))
 
 
+def _scaled_about(centre: np.ndarray, k: float) -> np.ndarray:
+    """The similarity [4,4] that scales by ``k`` about ``centre`` [3]."""
+    S = np.diag([k, k, k, 1.0])
+    S[:3, 3] = (1.0 - k) * np.asarray(centre, float)
+    return S
+
+
 def register_loop(query: int, match: int, points_query: np.ndarray, points_match: np.ndarray,
                   T_world_query: np.ndarray, T_world_match: np.ndarray, plane: GroundPlane, tile_size: float,
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
-                  colors_match: np.ndarray | None = None) -> LoopResult:
+                  colors_match: np.ndarray | None = None, cameras_query: np.ndarray | None = None,
+                  cameras_match: np.ndarray | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -405,6 +418,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         bounds: what odometry can have drifted between the two (None: the physical limits only).
         colors_query, colors_match: [N,3], [M,3] uint8 image colours of the points (optional): structure
             then agrees by its hue too (:func:`~vggt_slam_pp.backend.search.hue_vectors`).
+        cameras_query, cameras_match: [S,3] the keyframes' camera centres, each in its own submap's frame
+            (optional): where both submaps' cameras stand at one height above their ground, the ratio of
+            the heights is the loop's scale (``RegistrationConfig.height_cue``).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -446,8 +462,16 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if c.own_up:  # each submap's up from its own ground: the estimate's drifts (module docstring)
         up_q = own_up(src, up_q, unit_q, c.max_up_tilt_deg, seed=query)
         up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
+    cue = None
+    if c.height_cue:
+        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread)
+                    for P, C, u in ((src, cameras_query, up_q), (dst, cameras_match, up_m)))
+        if h_q is not None and h_m is not None:
+            cue = (h_m / h_q, c.height_cue_tolerance)
+            for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
+                guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
-                              bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst)
+                              bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst, cue)
     for k, (G, _) in enumerate(found):
         guesses[f"search_{k + 1}"] = G
     tree = _REUSED.get(match, points_match, ("tree",), lambda: cKDTree(dst))
@@ -497,6 +521,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         if cells < c.min_agreement_cells:
             agree = 0.0
         grounded = abs(lifted) <= c.structure_height_tiles * unit
+        if cue is not None and abs(np.log(decompose_sim3(T @ G)[0] / cue[0])) > cue[1]:
+            grounded = False  # ICP left the cameras' scale: ranked last (and rejected if nothing is better)
         refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
                             H, centre, agree, cells, lifted))
         log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
@@ -522,6 +548,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
     if residual > c.max_residual_tiles * unit:
         return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
+    if cue is not None and abs(np.log(decompose_sim3(Z)[0] / cue[0])) > cue[1]:
+        return reject(f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights", **kw)
     if log_s > max_log_scale:
         return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",
                       **kw)

@@ -100,6 +100,28 @@ def own_up(points: np.ndarray, up_guess: np.ndarray, unit: float, max_tilt_deg: 
     return up if up @ g >= cos_max else g
 
 
+def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up: np.ndarray,
+                  ground_percentile: float = 20.0, max_spread: float = 0.1) -> float | None:
+    """The height of a submap's cameras above its own ground (its frame's units): the median of the
+    camera centres' [S,3] heights along ``up`` over the ``ground_percentile`` height of ``points`` [N,3];
+    None when it is not one height (their spread, std / median, over ``max_spread``, fewer than two
+    cameras, or cameras not above the ground).
+
+    A camera carried at a steady height (a car, a walker, a robot) gives each submap's scale directly: the
+    ratio of two submaps' heights is their relative scale, however far odometry's scale has drifted
+    between them. A flying camera changes height within a submap and gives no cue."""
+    C = np.asarray(camera_centers, float).reshape(-1, 3) if camera_centers is not None else np.zeros((0, 3))
+    P = np.asarray(points, float).reshape(-1, 3)
+    if len(C) < 2 or len(P) < 10:
+        return None
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    h = C @ u - float(np.percentile(P @ u, ground_percentile))
+    mid = float(np.median(h))
+    if mid <= 0 or float(np.std(h)) > max_spread * mid:
+        return None
+    return mid
+
+
 def hue_vectors(colors: np.ndarray | None, n: int, full_saturation: float = 0.08, min_value: int = 24
                 ) -> np.ndarray:
     """Each point's hue as a 2-D vector [n,2]: the direction of its chromaticity ``rgb / (r + g + b)``
@@ -327,7 +349,8 @@ def _lift(R: np.ndarray) -> np.ndarray:
 def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_dst: np.ndarray, unit: float,
                       prior: np.ndarray, max_log_scale: float, max_yaw_deg: float, max_shift: float, count: int,
                       config: SearchConfig | None = None, hue_src: np.ndarray | None = None,
-                      hue_dst: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+                      hue_dst: np.ndarray | None = None, scale_cue: tuple[float, float] | None = None
+                      ) -> list[tuple[np.ndarray, float]]:
     """Up to ``count`` candidate similarities ``T`` [4,4] with ``T src ~ dst`` from the two clouds (each in
     its own frame; ``unit``: one tile in ``dst``'s frame), best first, each with its free-space
     agreement (module docstring).
@@ -336,7 +359,9 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     ``T``): yaws within ``max_yaw_deg`` (180: the full circle), scales within ``exp(+-max_log_scale)``
     and shifts that move the query's centroid by at most ``max_shift`` (``dst`` units; inf: anywhere the
     two overlap). The result depends on ``prior`` only through these bounds. With the points' hue
-    vectors (:func:`hue_vectors`), structure agrees by its colour too.
+    vectors (:func:`hue_vectors`), structure agrees by its colour too. ``scale_cue`` = (scale, tolerance):
+    an independent measurement of ``T``'s scale (:func:`camera_height`): only scales within
+    ``exp(+-tolerance)`` of it (and within the bounds) are searched; [] when the two ranges do not meet.
     """
     c = config or SearchConfig()
     Rs, Rd = up_frame(up_src), up_frame(up_dst)
@@ -351,9 +376,15 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     maps = {k: (CellMap.of(cs, k, gs + h, hue_src), CellMap.of(cd, k, gd + h, hue_dst)) for k in (cell, 2 * cell)}
     if min(m.structure.sum() for m in maps[2 * cell]) < c.min_structure_cells:
         return []
-    n = max(1, int(np.ceil(max_log_scale / c.scale_step)))
-    scales = np.exp(np.linspace(-max_log_scale, max_log_scale, 2 * n + 1))
-    step = 2 * max_log_scale / (2 * n)
+    lo_s, hi_s = -max_log_scale, max_log_scale  # log-scales about the prior's
+    if scale_cue is not None:
+        centre = float(np.log(scale_cue[0] / s_p))
+        lo_s, hi_s = max(lo_s, centre - scale_cue[1]), min(hi_s, centre + scale_cue[1])
+        if lo_s > hi_s:
+            return []
+    n = max(1, int(np.ceil((hi_s - lo_s) / (2 * c.scale_step))))
+    scales = np.exp(np.linspace(lo_s, hi_s, 2 * n + 1))
+    step = (hi_s - lo_s) / (2 * n)
     half = min(float(max_yaw_deg), 180.0)
     yaws = yaw_p + (np.arange(-180.0, 180.0, c.yaw_step_deg) if half >= 180.0 else
                     np.linspace(-half, half, 2 * max(1, int(np.ceil(half / c.yaw_step_deg))) + 1))

@@ -91,7 +91,8 @@ class Map:
             self.degraded_edges.add(e.prev)
         if e is not None:
             self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
-                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded), "odometry",
+                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded,
+                                                               e.method in ("pose_scale", "anchored")), "odometry",
                                      {"residual": e.residual, "degraded": e.degraded}))
         if len(points):
             self._remember_extent(sid, points)

@@ -547,6 +547,38 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     assert closer.consistent(far) == []
 
 
+def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
+    """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
+    scale change is not held against it when the cameras' heights measured that scale (monocular submaps
+    drift mostly in scale, more than the model's sigma under realistic drift); its turn still is."""
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.registration import LoopResult
+
+    backend = Backend(BackendConfig(), SubmapStore(tmp_path / "s"))
+    backend.map.gallery.grid = SimpleNamespace(tile_size=2.0)
+    for i in range(14):
+        backend.map.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([5.0 * i, 0.0, 0.0])))
+        backend.map.segment[i] = 0
+        backend.map._centroid[i] = np.zeros(3)
+    P = backend.map.graph.poses
+    b = backend.closer.bounds(2, 12)
+
+    def loop(C, cue):
+        Z = sim3_inverse(P[2]) @ C @ P[12]
+        return LoopResult(12, 2, True, "accepted", Z, C, 0.5, 0.5, 0.1, 0, 0.0, "search_1", scale_cue=cue)
+
+    about = P[12][:3, 3]  # the query's centroid: a scale change about it moves nothing
+    rescale = make_sim3(np.exp(0.6 * b.max_log_scale), np.eye(3), np.zeros(3))
+    rescale[:3, 3] = about - rescale[:3, :3] @ about
+    assert not backend.closer.odometry_consistent(loop(rescale, 0.0))
+    assert backend.closer.odometry_consistent(loop(rescale, 1.3))
+    turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(0.6 * b.max_yaw_deg)])), np.zeros(3))
+    turn[:3, 3] = about - turn[:3, :3] @ about
+    assert not backend.closer.odometry_consistent(loop(turn, 1.3))
+
+
 def test_every_part_of_the_pose_graph_has_its_own_gauge():
     """A recording no loop has linked to the map is a part of its own: its first node is held, so a solve
     is defined; anchored nodes never move."""

@@ -268,12 +268,15 @@ class LoopCloser:
 
     def odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`) closes
-        a consistent cycle with the odometry chain itself: it needs no partner loop."""
+        a consistent cycle with the odometry chain itself: it needs no partner loop. Its scale change is not
+        tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry drifted,
+        measured, not a sign of a wrong place (its turn and move still are tested)."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         b = self.bounds(r.match, r.query)
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
-        return log_s <= b.max_log_scale / 3 and angle <= b.max_yaw_deg / 3 and moved <= b.max_translation / 3
+        return (log_s <= b.max_log_scale / 3 or r.scale_cue > 0) and angle <= b.max_yaw_deg / 3 \
+            and moved <= b.max_translation / 3
 
     def bounds(self, match: int, query: int) -> LoopBounds:
         """What odometry can have drifted between ``match`` and ``query`` (submap ids):

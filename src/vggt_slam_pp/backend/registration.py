@@ -146,13 +146,14 @@ class LoopResult:
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
+    scale_cue: float = 0.0  # the scale the two submaps' camera heights gave, which the loop's agrees with (0: none)
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
-                "agreement": self.agreement, "agreement_cells": self.agreement_cells}
+                "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue}
 
 
 def drift_bounds(config: RegistrationConfig, submaps: int, path: float, tile_size: float,
@@ -535,7 +536,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     ev = np.linalg.eigvalsh(level[:2] @ H[3:6, 3:6] @ level[:2].T)  # in-plane translation information
     constraint = float(ev[0] / max(ev[1], 1e-12))
     kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
-              residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint)
+              residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint,
+              scale_cue=cue[0] if cue is not None else 0.0)
     C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
     log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
     if overlap < c.min_overlap:

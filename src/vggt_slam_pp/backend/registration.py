@@ -5,7 +5,10 @@ its own frame; the result is the measurement ``T_match_query`` itself. The curre
 a first up direction (the ground plane's normal in each frame; each submap's own ground refines it:
 :func:`~vggt_slam_pp.backend.search.own_up`), the unit (``tile_size`` in each submap's
 scale), one initial guess among the others and, through :class:`LoopBounds`, how far odometry can
-have drifted; nothing else.
+have drifted; nothing else. Where both submaps' keyframe cameras stand at one height above their own
+ground (:func:`~vggt_slam_pp.backend.search.camera_height`: a car, a walker, a robot), the ratio of the
+two heights is the loop's scale: the search covers only scales near it, the estimate's guesses are
+rescaled to it, and a result at another scale is refused (``RegistrationConfig.height_cue``).
 
 0. **Clean-up.** Isolated points (flying pixels: a wrong depth in mid-air) are removed
    (:func:`remove_isolated`): they would count as structure everywhere.
@@ -46,10 +49,10 @@ from scipy.spatial import cKDTree
 
 from vggt_slam_pp.backend.search import (
     SearchConfig,
+    camera_height,
     colour_match,
     free_space_agreement,
     hue_vectors,
-    camera_height,
     own_up,
     search_alignments,
     up_frame,

@@ -321,6 +321,7 @@ def test_camera_height_gives_the_loop_scale_of_a_steady_camera_and_none_of_a_fly
                       cameras_query=k * cams, cameras_match=cams)
     assert r.accepted, r.reason
     assert abs(np.cbrt(np.linalg.det(r.T_match_query[:3, :3])) * k - 1) < 0.02
+    assert abs(r.scale_cue * k - 1) < 0.03  # the heights measured that scale themselves
     lying = register_loop(5, 1, query, place, np.eye(4), np.eye(4), plane, 2.0, bounds=bounds,
                           cameras_query=cams, cameras_match=cams)  # heights that say "no scale change"
     # the cue is a constraint: whatever is accepted lies within its tolerance, never at the true x1.33
@@ -545,6 +546,25 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     far = loop(13, 9, sim3_inverse(P[9]) @ C @ P[13])  # too far from the others to be compared
     closer.loops = list(true)
     assert closer.consistent(far) == []
+
+
+def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_degraded(tmp_path):
+    """An edge a sparse backbone measured from the shared keyframes' cameras is 0.05-0.45 % of the step
+    off (castle walk, EuRoC), not the 2 % a dense backbone's point alignment is given; a degraded one keeps
+    the wide sigma."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.frontend.types import OdometryEdge
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"), Gallery(HogEncoder(), CovisibilityConfig()))
+    step = make_sim3(1.0, np.eye(3), np.array([10.0, 0.0, 0.0]))
+    m.add_submap(0, None, np.zeros((0, 3)))
+    for i, (method, degraded) in enumerate((("points", False), ("pose_scale", False), ("pose_scale", True)), 1):
+        m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, method, degraded), np.zeros((0, 3)))
+    trans = {e.j: e.sigmas[3] for e in m.graph.edges}
+    assert np.isclose(trans[1], 0.02 * 10 + 0.01) and np.isclose(trans[2], 0.002 * 10 + 0.01)
+    assert np.isclose(trans[3], 100 * trans[1])  # degraded: no measured link, the wide sigma inflated
 
 
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):

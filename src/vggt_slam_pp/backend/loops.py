@@ -177,12 +177,13 @@ class LoopCloser:
         chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
         tile_uv = m.gallery.tile_centers_uv(keys[ib])
         pm = subsample(m.store.get(match), self.config.registration_max_points)
+        # the height cue holds within one recording (one rig); another recording's camera may ride higher
+        cams_q, cams_m = (m.cameras.get(sid), m.cameras.get(match)) if m.same_segment(sid, match) else (None, None)
         cm = m.store.get_colors(match) if colors is not None else None
         cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
-                             colors_query=colors, colors_match=cm, cameras_query=m.cameras.get(sid),
-                             cameras_match=m.cameras.get(match))
+                             colors_query=colors, colors_match=cm, cameras_query=cams_q, cameras_match=cams_m)
 
     def _wait(self, r: LoopResult) -> None:
         self._pending.append(len(self.loops))

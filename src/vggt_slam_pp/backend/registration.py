@@ -108,6 +108,7 @@ class RegistrationConfig:
     # loop's scale (search.camera_height), searched within and verified against height_cue_tolerance
     height_cue_tolerance: float = 0.1  # |log s| between the loop's scale and the cameras' height ratio
     height_cue_max_spread: float = 0.1  # std / median of a submap's camera heights for a steady height
+    height_cue_min_tiles: float = 0.2  # lower cameras give no cue (a ratio of tiny heights is noise)
     use_colour: bool = True  # structure agrees by its image colour too (when the points have colours)
     full_saturation: float = 0.08  # chromaticity distance from grey at which a point's hue counts fully
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
@@ -149,7 +150,7 @@ class LoopResult:
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
-    scale_cue: float = 0.0  # the scale the two submaps' camera heights gave, which the loop's agrees with (0: none)
+    scale_cue: float = 0.0  # the scale the two submaps' camera heights gave (0: none); an accepted loop agrees with it
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
@@ -468,8 +469,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
     cue = None
     if c.height_cue:
-        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread)
-                    for P, C, u in ((src, cameras_query, up_q), (dst, cameras_match, up_m)))
+        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread, c.height_cue_min_tiles * k)
+                    for P, C, u, k in ((src, cameras_query, up_q, unit_q), (dst, cameras_match, up_m, unit)))
         if h_q is not None and h_m is not None:
             cue = (h_m / h_q, c.height_cue_tolerance)
             for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid

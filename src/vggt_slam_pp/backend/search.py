@@ -101,11 +101,13 @@ def own_up(points: np.ndarray, up_guess: np.ndarray, unit: float, max_tilt_deg: 
 
 
 def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up: np.ndarray,
-                  ground_percentile: float = 20.0, max_spread: float = 0.1) -> float | None:
+                  ground_percentile: float = 20.0, max_spread: float = 0.1, min_height: float = 0.0
+                  ) -> float | None:
     """The height of a submap's cameras above its own ground (its frame's units): the median of the
     camera centres' [S,3] heights along ``up`` over the ``ground_percentile`` height of ``points`` [N,3];
-    None when it is not one height (their spread, std / median, over ``max_spread``, fewer than two
-    cameras, or cameras not above the ground).
+    None when it is not one height (their spread, std / median, over ``max_spread``), when it is below
+    ``min_height`` (a ratio of tiny heights is noise) or not finite, or with fewer than two cameras or
+    ten points.
 
     A camera carried at a steady height (a car, a walker, a robot) gives each submap's scale directly: the
     ratio of two submaps' heights is their relative scale, however far odometry's scale has drifted
@@ -117,7 +119,7 @@ def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up: np.
     u = np.asarray(up, float) / np.linalg.norm(up)
     h = C @ u - float(np.percentile(P @ u, ground_percentile))
     mid = float(np.median(h))
-    if mid <= 0 or float(np.std(h)) > max_spread * mid:
+    if not np.isfinite(mid) or mid <= max(min_height, 0.0) or float(np.std(h)) > max_spread * mid:
         return None
     return mid
 

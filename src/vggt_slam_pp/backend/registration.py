@@ -469,12 +469,17 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
     cue = None
     if c.height_cue:
-        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread, c.height_cue_min_tiles * k)
-                    for P, C, u, k in ((src, cameras_query, up_q, unit_q), (dst, cameras_match, up_m, unit)))
+        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread, c.height_cue_min_tiles * tile)
+                    for P, C, u, tile in ((src, cameras_query, up_q, unit_q), (dst, cameras_match, up_m, unit)))
         if h_q is not None and h_m is not None:
             cue = (h_m / h_q, c.height_cue_tolerance)
             for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
                 guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
+
+    def off_cue(T: np.ndarray) -> bool:
+        """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""
+        return cue is not None and abs(float(np.log(decompose_sim3(T)[0] / cue[0]))) > cue[1]
+
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst, cue)
     for k, (G, _) in enumerate(found):
@@ -526,7 +531,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         if cells < c.min_agreement_cells:
             agree = 0.0
         grounded = abs(lifted) <= c.structure_height_tiles * unit
-        if cue is not None and abs(np.log(decompose_sim3(T @ G)[0] / cue[0])) > cue[1]:
+        if off_cue(T @ G):
             grounded = False  # ICP left the cameras' scale: ranked last (and rejected if nothing is better)
         refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
                             H, centre, agree, cells, lifted))
@@ -554,7 +559,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
     if residual > c.max_residual_tiles * unit:
         return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
-    if cue is not None and abs(np.log(decompose_sim3(Z)[0] / cue[0])) > cue[1]:
+    if off_cue(Z):
         return reject(f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights", **kw)
     if log_s > max_log_scale:
         return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",

@@ -12,7 +12,7 @@ from vggt_slam_pp.backend.registration import planar_ransac, register_loop
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import GroundPlane
 from vggt_slam_pp.errors import BackendError
-from vggt_slam_pp.geometry.lie import make_sim3, sim3_inverse, so3_exp, transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, so3_exp, transform_points
 
 
 def test_gtsam_conversion_round_trip_and_action():
@@ -75,6 +75,62 @@ def test_pose_graph_loop_reduces_drift_and_cauchy_rejects_a_bad_loop():
         other, _ = _graph_with_drift(kernel, bad_loop=True)
         other.optimize()
         assert _err(other, gt) > 2 * _err(bad_cauchy, gt)
+
+
+def _scale_drift_chain(rng, n: int = 30, step: float = 0.06):
+    """A straight drive (submaps 10 m apart, each at scale 1 in the world) whose odometry edges are off in
+    scale by exp(N(0, ``step``)) each: the chained scale is a random walk."""
+    gt = [make_sim3(1.0, np.eye(3), np.array([10.0 * k, 0.0, 0.0])) for k in range(n)]
+    g = PoseGraph(GraphConfig())
+    g.add_node(0, gt[0])
+    T = gt[0]
+    for k in range(1, n):
+        meas = make_sim3(float(np.exp(rng.normal(0, step))), np.eye(3), np.array([10.0, 0.0, 0.0]))
+        T = T @ meas
+        g.add_node(k, T)
+        g.add_edge(Edge(k - 1, k, meas, g.odometry_sigmas(meas, 0.05), "odometry"))
+    return g, gt
+
+
+def test_height_factors_keep_the_scale_of_a_steady_camera_from_wandering(rng):
+    """Odometry's scale is a random walk; a camera at one height above its ground measures every submap's
+    scale on its own (docs/backend.md, "Height factors"). The graph bounds the scale error with them, and
+    a few submaps whose height is wrong (a camera raised, a wrong ground) are outweighed by the rest."""
+    g, gt = _scale_drift_chain(rng)
+
+    def errors(graph):  # a common scale is free (the ATE aligns in Sim(3)): scale about the chain's own,
+        # positions after the best common scale about the first submap
+        log_s = np.array([np.log(decompose_sim3(graph.poses[k])[0]) for k in range(len(gt))])
+        p, q = np.array([graph.poses[k][:3, 3] for k in range(len(gt))]), np.array([T[:3, 3] for T in gt])
+        return np.abs(log_s - np.median(log_s)), np.linalg.norm(p * (np.sum(p * q) / np.sum(p * p)) - q, axis=1)
+
+    scale0, pos0 = errors(g)
+    assert scale0.max() > 0.15  # the odometry alone: far off in scale by the end
+    for k in range(len(gt)):
+        h = 1.6 * float(np.exp(rng.normal(0, 0.02)))  # the cameras' height in submap k's units
+        g.add_height(k, h * (1.5 if k in (7, 19) else 1.0), group=0)  # two wrong heights
+    g.optimize()
+    scale, pos = errors(g)
+    assert np.median(scale) < 0.04 and scale.max() < 0.15  # the wrong heights (log 1.5 = 0.4) held off
+    assert pos.max() < 0.5 * pos0.max()
+    assert 0.02 < g.last_solve["odometry_scale_sigma"] < 0.12  # the edges' 0.06, measured by the heights
+    assert abs(g.height_refs[0] / 1.6 - 1) < 0.1  # the world height is estimated with them
+    good, _ = _scale_drift_chain(rng, step=0.002)  # a front-end whose scale hardly drifts: noisy heights
+    before, _ = errors(good)  # (2 %) must not bend it; its drift is measured too small to need them
+    for k in range(len(gt)):
+        good.add_height(k, 1.6 * float(np.exp(rng.normal(0, 0.02))), group=0)
+    good.optimize()
+    assert errors(good)[0].max() < max(0.01, 1.5 * before.max())
+    assert good.last_solve["height_factors"] == 0
+    off = PoseGraph(GraphConfig(height_factors=False))  # switched off: the chain stays the odometry's
+    chain, _ = _scale_drift_chain(np.random.default_rng(1))
+    for k, T in chain.poses.items():
+        off.add_node(k, T)
+        off.add_height(k, 1.6, group=0)
+    for e in chain.edges:
+        off.add_edge(e)
+    off.optimize()
+    assert all(np.allclose(off.poses[k], chain.poses[k], atol=1e-6) for k in chain.poses)
 
 
 def _large_drift_graph(kernel: str, bad_loop: bool):
@@ -312,18 +368,22 @@ def test_camera_height_gives_the_loop_scale_of_a_steady_camera_and_none_of_a_fly
     flying = cams.copy()
     flying[:, 2] = np.linspace(1.0, 4.0, 8)
     assert camera_height(place, flying, [0.0, 0.0, 1.0]) is None  # no steady height: no cue
+    R = so3_exp(np.array([np.radians(6.0), 0.0, 0.0]))  # a submap tilted against the estimate's up: the
+    # height is measured to its own ground plane, not along the guess to a percentile of its points
+    assert abs(camera_height(place @ R.T, cams @ R.T, [0.0, 0.0, 1.0]) - 1.6) < 0.02
 
     k = 0.75  # the query submap's own scale has drifted by 0.75; the estimate does not know it
     query = k * place + rng.normal(0, 0.01, place.shape)
     plane = GroundPlane(np.zeros(3), np.eye(3))
     bounds = LoopBounds(max_log_scale=0.4, max_translation=20.0, max_yaw_deg=30.0)
+    h_q, h_m = camera_height(query, k * cams, [0.0, 0.0, 1.0]), camera_height(place, cams, [0.0, 0.0, 1.0])
     r = register_loop(5, 1, query, place, np.eye(4), np.eye(4), plane, 2.0, bounds=bounds,
-                      cameras_query=k * cams, cameras_match=cams)
+                      height_query=h_q, height_match=h_m)
     assert r.accepted, r.reason
     assert abs(np.cbrt(np.linalg.det(r.T_match_query[:3, :3])) * k - 1) < 0.02
     assert abs(r.scale_cue * k - 1) < 0.03  # the heights measured that scale themselves
     lying = register_loop(5, 1, query, place, np.eye(4), np.eye(4), plane, 2.0, bounds=bounds,
-                          cameras_query=cams, cameras_match=cams)  # heights that say "no scale change"
+                          height_query=h_m, height_match=h_m)  # heights that say "no scale change"
     # the cue is a constraint: whatever is accepted lies within its tolerance, never at the true x1.33
     assert not lying.accepted or abs(np.log(np.cbrt(np.linalg.det(lying.T_match_query[:3, :3])))) <= 0.1 + 1e-9
 

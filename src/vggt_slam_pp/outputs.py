@@ -294,7 +294,8 @@ def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, pri
         for i, frames, centres in itertools.chain(known, mine):
             yield {"id": i, "frames": [int(f) for f in frames], "T_world_submap": backend.poses[i].tolist(),
                    "T_world_submap_odometry": backend.odometry_poses[i].tolist(),
-                   "camera_centers": [np.asarray(c, float).tolist() for c in centres], "placed": i in placed}
+                   "camera_centers": [np.asarray(c, float).tolist() for c in centres], "placed": i in placed,
+                   **({"camera_height": backend.heights[i]} if i in backend.heights else {})}
 
     def edges():
         weights = iter(backend.loop_weights)
@@ -314,7 +315,8 @@ def _write_graph(path: Path, result: FrontendResult, backend: BackendResult, pri
             for j, rec in enumerate(records):
                 f.write(("," if j else "") + "\n  " + json.dumps(rec, default=json_default))
             f.write("\n ]")
-        for name, value in (("plane", backend.plane), ("tile_size", backend.tile_size), ("mpp", backend.mpp)):
+        for name, value in (("plane", backend.plane), ("tile_size", backend.tile_size), ("mpp", backend.mpp),
+                            ("camera_height_world", {str(k): v for k, v in backend.height_refs.items()})):
             f.write(f',\n "{name}": {json.dumps(value, default=json_default)}')
         f.write("\n}\n")
     tmp.replace(path)

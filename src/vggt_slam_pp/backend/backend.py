@@ -39,9 +39,10 @@ from vggt_slam_pp.backend.loops import PENDING, LoopCloser
 from vggt_slam_pp.backend.map import Map, subsample
 from vggt_slam_pp.backend.places import CovisibilityStage, Gallery
 from vggt_slam_pp.backend.registration import LoopResult
+from vggt_slam_pp.backend.search import camera_height
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.frontend.types import OdometryEdge
-from vggt_slam_pp.geometry.lie import transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
 from vggt_slam_pp.resources import rss_mb
 from vggt_slam_pp.retrieval.index import CovisibilityEdge
 
@@ -89,6 +90,8 @@ class BackendResult:
     memory_trace: list = field(default_factory=list)  # (submaps done, RSS MiB of the back-end's process)
     placed: list[int] = field(default_factory=list)  # submaps whose poses are in the map's frame
     skipped: list[int] = field(default_factory=list)  # submaps whose query was deferred (back-end behind)
+    heights: dict[int, float] = field(default_factory=dict)  # submap id -> its cameras' height (its units)
+    height_refs: dict[int, float] = field(default_factory=dict)  # recording (segment) -> that height in the world
 
 
 class Backend:
@@ -128,6 +131,7 @@ class Backend:
         m, sid = self.map, msg.submap_id
         points = m.store.get(sid)
         m.add_submap(sid, msg.odometry, points, msg.camera_centers)
+        self._measure_height(sid, points, msg.camera_centers)
         accepted: list[LoopResult] = []
         if len(points) >= 3 and not query and m.gallery.grid is not None:
             t0 = time.perf_counter()
@@ -138,6 +142,8 @@ class Backend:
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3:
             accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
+            if m.height(sid) is None:  # the first submap: the DEM plane exists only now
+                self._measure_height(sid, points, msg.camera_centers)
         if accepted:
             self._solve_for(sid, accepted)
         elif m.stale:  # layers a solve moved beyond the refresh budget: the next ones now
@@ -149,6 +155,28 @@ class Backend:
         if len(self.seconds) % 10 == 0:
             self.memory_trace.append((len(self.seconds), snap.rss_mb))
         return snap
+
+    def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None) -> None:
+        """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_height`,
+        up guessed from the DEM plane at its pose) as a height factor, and its scale corrected by it at once
+        (a solve of it alone, its predecessor held). Needs the DEM plane; nothing for a camera that does not
+        keep one height, or when neither the graph (``GraphConfig.height_factors``) nor loops
+        (``RegistrationConfig.height_cue``) use heights."""
+        m, c = self.map, self.config.registration
+        grid = m.gallery.grid
+        if grid is None or camera_centers is None or len(points) < 10 or sid in m.graph.heights or not (
+                self.config.graph.height_factors or c.height_cue):
+            return
+        s, R, _ = decompose_sim3(m.graph.poses[sid])
+        h = camera_height(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,
+                          c.max_up_tilt_deg, c.height_cue_max_spread, seed=sid)
+        if h is None or h * s < c.height_cue_min_tiles * grid.tile_size:  # a ratio of tiny heights is noise
+            return
+        m.set_height(sid, h)
+        if self.config.graph.height_factors and m.segment[sid] != sid:
+            t0 = time.perf_counter()
+            m.graph.optimize({sid})
+            self.timings["optimization_s"] += time.perf_counter() - t0
 
     def _query(self, sid: int, camera_centers: np.ndarray, points: np.ndarray, index: bool) -> list[LoopResult]:
         """Covisibility, then loop candidates verified and accepted, for submap ``sid`` at its current pose
@@ -231,10 +259,11 @@ class Backend:
         while self._deferred:
             self.query_deferred()
         graph = self.map.graph
-        if any(e.kind == "loop" for e in graph.edges):  # no query follows: the layers are not described again
+        if (graph.heights and graph.config.height_factors) or any(e.kind == "loop" for e in graph.edges):
+            # no query follows: the layers are not described again
             self._optimize(None, refresh=False)
             if self.closer.prune(self.config.min_loop_weight):
-                self._optimize(None, refresh=False)  # without any loop left this returns the odometry chain
+                self._optimize(None, refresh=False)  # without any loop left: odometry and heights alone
         grid = self.map.gallery.grid
         return BackendResult(
             poses={i: T.copy() for i, T in graph.poses.items()},
@@ -243,4 +272,5 @@ class Backend:
             loops=list(self.closer.loops), seconds_per_submap=list(self.seconds),
             timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
             tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,
-            memory_trace=list(self.memory_trace), placed=self.map.placed_submaps(), skipped=list(self.skipped))
+            memory_trace=list(self.memory_trace), placed=self.map.placed_submaps(), skipped=list(self.skipped),
+            heights={i: h for i, (h, _) in graph.heights.items()}, height_refs=dict(graph.height_refs))

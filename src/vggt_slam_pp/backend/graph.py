@@ -10,6 +10,14 @@ is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below
 
 :meth:`PoseGraph.optimize` solves either every node (global) or a window of nodes with the others held
 fixed (their factors become priors of negligible sigma): the cheap per-submap update.
+
+Height factors (:meth:`PoseGraph.add_height`): a camera carried at one height above its ground (a car,
+a walker, a robot) measures each submap's scale on its own: ``s_i h_i = H``, where ``h_i`` is the
+cameras' height in submap i's units and ``H`` that height in the world, one unknown per recording
+(``group``). Odometry's scale is a random walk; these keep it from wandering. Each ``H`` is a node of
+its own (a Sim(3) whose scale is ``H``; its rotation and translation are held at the identity) joined
+to each of its submaps by a between-factor that constrains the scale alone; it is free in a global
+solve and held in a windowed one.
 """
 
 from __future__ import annotations
@@ -44,6 +52,17 @@ class GraphConfig:
     loop_scale_sigma: float = 0.02
     loop_trans_sigma_tiles: float = 0.02  # floor of a loop's translation sigma, in tiles (ICP along a
     # street of facades is weakly constrained along the street: the RMS residual understates that)
+    height_factors: bool = True  # a submap's scale from its cameras' height above its ground (PoseGraph.add_height)
+    height_kernel_width: float = 2.0  # Cauchy width (whitened) of the height factors: a camera that changes
+    # its height between submaps (a drone, a walker climbing stairs) loses its pull
+    height_lags: int = 6  # the scale noise is measured over lags 1..6 submaps (PoseGraph.scale_noise)
+    height_min_edges: int = 8  # differences per lag needed to measure it; until then no height factor
+    min_height_sigma: float = 0.01  # a height is not trusted below 1 % (measured 0.2-5.6 % on the bench worlds)
+    min_scale_drift: float = 0.02  # heights join the graph only when the odometry's scale is measured to walk at
+    # least this much per submap: below it, the heights' own errors (correlated over neighbouring submaps,
+    # 1-4 % on the bench worlds) are as large as what they would correct (default profile: KITTI 00-driven
+    # ATE 2.64 -> 6.5 m with heights at 1.7 %; docs/experiments.md, session 21)
+    max_odometry_scale_sigma: float = 0.2  # the measured odometry scale noise is capped here
     max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # gnc: a loop is an inlier within this chi-square quantile
 
@@ -85,6 +104,12 @@ def _key(i: int) -> int:
     return gtsam.symbol("s", i)
 
 
+def _height_key(group: int) -> int:
+    import gtsam
+
+    return gtsam.symbol("h", group)
+
+
 class PoseGraph:
     """Owns the poses and edges; not thread-safe (the back-end worker alone touches it)."""
 
@@ -99,6 +124,9 @@ class PoseGraph:
         # (its gauge: a recording that no loop has linked to the map yet is a part of its own): the nodes
         # of a map used for localisation only
         self.anchors: set[int] = set()
+        self.heights: dict[int, tuple[float, int]] = {}  # node -> (its cameras' height in its units, group)
+        self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
+        self._scale_noise_at: tuple[int, tuple[float, float] | None] | None = None  # (heights, scale_noise())
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -122,6 +150,16 @@ class PoseGraph:
         sig = np.r_[[c.odometry_rot_sigma] * 3, [trans / max(float(s), 1e-9)] * 3, c.odometry_scale_sigma]
         return sig * (c.degraded_inflation if degraded else 1.0)
 
+    def add_height(self, i: int, height: float, group: int) -> None:
+        """Node ``i``'s cameras stand ``height`` (its own units) above its ground; ``group``: the recording
+        (one rig, one height). The group's world height starts at this node's current ``s_i height``."""
+        if i not in self.poses:
+            raise BackendError(f"height of submap {i}: not in the pose graph")
+        if not (np.isfinite(height) and height > 0):
+            raise BackendError(f"height of submap {i} must be positive and finite, got {height}")
+        self.heights[i] = (float(height), int(group))
+        self.height_refs.setdefault(int(group), float(decompose_sim3(self.poses[i])[0]) * float(height))
+
     def add_edge(self, edge: Edge) -> None:
         for n in (edge.i, edge.j):
             if n not in self.poses:
@@ -134,13 +172,65 @@ class PoseGraph:
         self.edges.append(edge)
 
     # -- solving --------------------------------------------------------------------------------
-    def _noise(self, edge: Edge, kernel: str):
+    def scale_noise(self) -> tuple[float, float] | None:
+        """``(odometry scale sigma, height sigma)`` for the solve, measured from the data, or None (too few
+        heights: the heights then stay out of the graph).
+
+        Along a chain of odometry edges between submaps with heights, ``y_k = log(S_k h_k)`` (``S_k`` the
+        chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights' own
+        noise, so the robust variance of ``y_k - y_{k-L}`` is ``L sigma_o^2 + 2 sigma_h^2`` (a variogram):
+        a line fitted over lags 1..``height_lags`` gives both. Heights are used only when ``sigma_o`` is at
+        least ``min_scale_drift`` (a monocular front-end that drifts 6 % per submap, the realistic profile:
+        yes; the default profile's, under 1 %: no), weighted by the measured ratio: the odometry sigma is
+        ``odometry_scale_sigma`` or the measured one if larger (up to ``max_odometry_scale_sigma``), the
+        height sigma keeps the measured ratio to it. Cached: measured again when the number of heights has
+        grown by 5 %."""
+        c = self.config
+        n = len(self.heights)
+        if self._scale_noise_at and n < self._scale_noise_at[0] * 1.05 + 1:
+            return self._scale_noise_at[1]
+        odo = {e.j: e for e in self.edges if e.kind == "odometry" and e.j == e.i + 1}
+        y: dict[int, float] = {}  # per chain of consecutive submaps with heights: y_k relative to its start
+        chain: dict[int, int] = {}
+        for k in sorted(self.heights):
+            e = odo.get(k)
+            h, g = self.heights[k]
+            if e is not None and (k - 1) in y and not e.info.get("degraded") and self.heights[k - 1][1] == g:
+                y[k] = y[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0] * h / self.heights[k - 1][0]))
+                chain[k] = chain[k - 1]
+            else:
+                y[k], chain[k] = 0.0, k
+        lags, var = [], []
+        for L in range(1, c.height_lags + 1):
+            d = np.array([y[k] - y[k - L] for k in y if (k - L) in y and chain[k - L] == chain[k]])
+            if len(d) >= c.height_min_edges:
+                lags.append(L)
+                var.append((1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2)
+        out = None
+        if len(lags) >= 3:
+            (a, b), *_ = np.linalg.lstsq(np.c_[np.ones(len(lags)), lags], np.asarray(var), rcond=None)
+            sigma_o = float(np.sqrt(max(b, 0.0)))
+            sigma_h = max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma)
+            if sigma_o >= c.min_scale_drift:
+                used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
+                out = (used, sigma_h * used / sigma_o)
+            log.debug("scale noise from %d heights: odometry %.4f, heights %.4f: %s", n, sigma_o, sigma_h,
+                      f"height factors at {out[1]:.4f} (odometry {out[0]:.4f})" if out else "no height factors")
+        self._scale_noise_at = (n, out)
+        return out
+
+    def _noise(self, edge: Edge, kernel: str, scale_sigma: float | None = None):
+        """``scale_sigma``: an odometry edge's scale sigma at least this (measured, :meth:`scale_noise`)."""
         import gtsam
 
         if edge.information is not None:
             base = gtsam.noiseModel.Gaussian.Information(np.asarray(edge.information, float))
         else:
-            base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(edge.sigmas, float))
+            sig = np.asarray(edge.sigmas, float)
+            if scale_sigma is not None and edge.kind == "odometry" and scale_sigma > sig[6]:
+                sig = sig.copy()
+                sig[6] = scale_sigma
+            base = gtsam.noiseModel.Diagonal.Sigmas(sig)
         if edge.kind != "loop" or kernel == "none":
             return base
         k = self.config.kernel_width
@@ -179,15 +269,22 @@ class PoseGraph:
         values = gtsam.Values()
         for i in sorted(used):
             values.insert(_key(i), to_gtsam(self.poses[i]))
+        scale_model = self.scale_noise() if self.config.height_factors and self.heights else None
+        heights = {i: self.heights[i] for i in sorted(free & set(self.heights))} if scale_model is not None else {}
+        groups = sorted({g for _, g in heights.values()})
+        for g in groups:
+            values.insert(_height_key(g), gtsam.Similarity3(gtsam.Rot3(), np.zeros(3), self.height_refs[g]))
         err0 = None
         iterations = 0
+        scale_sigma, height_sigma = scale_model if heights else (None, None)
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
             for e in touching:
-                noise = self._noise(e, "none" if stage == "gnc" else stage)
+                noise = self._noise(e, "none" if stage == "gnc" else stage, scale_sigma)
                 graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), noise))
             for i in sorted(fixed):
                 graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))
+            self._add_heights(graph, heights, groups, window is None, "none" if stage == "gnc" else stage, height_sigma)
             if err0 is None:
                 err0 = graph.error(values)
             params = gtsam.LevenbergMarquardtParams()
@@ -207,11 +304,34 @@ class PoseGraph:
                     raise BackendError(f"pose-graph optimisation produced a non-finite pose for submap {i}")
                 out[i] = T
         self.poses.update(out)
+        if window is None:
+            for g in groups:
+                self.height_refs[g] = float(result.atSimilarity3(_height_key(g)).scale())
         self.last_solve = {"nodes": len(used), "free": len(out), "factors": graph.size(),
                            "error_before": float(err0), "error_after": float(graph.error(result)),
                            "iterations": iterations, "seconds": time.perf_counter() - t0,
-                           "global": window is None}
+                           "global": window is None, "height_factors": len(heights),
+                           "odometry_scale_sigma": scale_sigma, "height_sigma": height_sigma}
         return out
+
+    def _add_heights(self, graph, heights: dict[int, tuple[float, int]], groups: list[int], free_refs: bool,
+                     kernel: str, sigma: float) -> None:
+        """The height factors of ``heights`` (log-scale ``sigma``) and a prior on each group's world height
+        (free in scale when ``free_refs``, else held); the factors robust (Cauchy) unless ``kernel`` is
+        ``none``."""
+        import gtsam
+
+        c = self.config
+        for g in groups:
+            sig = np.r_[[1e-6] * 6, 1e3 if free_refs else 1e-6]
+            graph.add(gtsam.PriorFactorSimilarity3(_height_key(g), gtsam.Similarity3(
+                gtsam.Rot3(), np.zeros(3), self.height_refs[g]), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        base = gtsam.noiseModel.Diagonal.Sigmas(np.r_[[1e6] * 6, sigma])
+        noise = base if kernel == "none" else gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(c.height_kernel_width), base)
+        for i, (h, g) in heights.items():
+            graph.add(gtsam.BetweenFactorSimilarity3(_height_key(g), _key(i),
+                                                     gtsam.Similarity3(gtsam.Rot3(), np.zeros(3), 1.0 / h), noise))
 
     def component_roots(self) -> dict[int, int]:
         """Each node's connected part of the graph (odometry and loop edges), named by its first node; the

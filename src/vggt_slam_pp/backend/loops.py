@@ -178,12 +178,12 @@ class LoopCloser:
         tile_uv = m.gallery.tile_centers_uv(keys[ib])
         pm = subsample(m.store.get(match), self.config.registration_max_points)
         # the height cue holds within one recording (one rig); another recording's camera may ride higher
-        cams_q, cams_m = (m.cameras.get(sid), m.cameras.get(match)) if m.same_segment(sid, match) else (None, None)
+        h_q, h_m = (m.height(sid), m.height(match)) if m.same_segment(sid, match) else (None, None)
         cm = m.store.get_colors(match) if colors is not None else None
         cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
-                             colors_query=colors, colors_match=cm, cameras_query=cams_q, cameras_match=cams_m)
+                             colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m)
 
     def _wait(self, r: LoopResult) -> None:
         self._pending.append(len(self.loops))
@@ -199,7 +199,8 @@ class LoopCloser:
         g = m.graph.config
         trans = max(r.residual, g.loop_trans_sigma_tiles * self.tile_size) / float(s_m)
         sig = np.r_[[g.loop_rot_sigma] * 3, [trans] * 3, g.loop_scale_sigma]
-        m.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", r.to_dict(), r.information))
+        info = {k: v for k, v in r.to_dict().items() if k != "T_match_query"}  # the edge carries T itself
+        m.graph.add_edge(Edge(r.match, r.query, r.T_match_query, sig, "loop", info, r.information))
         return r
 
     def move(self, r: LoopResult) -> np.ndarray:
@@ -276,6 +277,8 @@ class LoopCloser:
             return False  # a loop that would place a recording needs a cycle-consistent partner
         b = self.bounds(r.match, r.query)
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
+        log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f)",
+                  r.query, r.match, log_s, b.max_log_scale / 3, angle, b.max_yaw_deg / 3, moved, b.max_translation / 3)
         return (log_s <= b.max_log_scale / 3 or r.scale_cue > 0) and angle <= b.max_yaw_deg / 3 \
             and moved <= b.max_translation / 3
 

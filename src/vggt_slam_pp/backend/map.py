@@ -61,7 +61,6 @@ class Map:
         self._stale: set[int] = set()  # layers that moved enough but wait for a refresh with budget left
         self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
         self.prior_poses: dict[int, np.ndarray] = {}  # a seeded map's submaps at their saved poses (its frame)
-        self.cameras: dict[int, np.ndarray] = {}  # keyframe camera centres [S,3] float32 per submap (its frame)
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
@@ -85,8 +84,6 @@ class Map:
             self.segment[sid] = self.segment[e.prev]
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
-        if camera_centers is not None:
-            self.cameras[sid] = np.asarray(camera_centers, np.float32).reshape(-1, 3)
         if e is not None and e.degraded:
             self.degraded_edges.add(e.prev)
         if e is not None:
@@ -98,6 +95,16 @@ class Map:
         if len(points):
             self._remember_extent(sid, points)
         return T
+
+    def height(self, sid: int) -> float | None:
+        """Submap ``sid``'s cameras' height above its own ground, its units (None: not measured or no cue)."""
+        h = self.graph.heights.get(sid)
+        return h[0] if h is not None else None
+
+    def set_height(self, sid: int, height: float) -> None:
+        """Submap ``sid``'s cameras stand ``height`` (its units) above its ground: a height factor in the
+        graph, one world height per recording (segment)."""
+        self.graph.add_height(sid, height, self.segment[sid])
 
     def _levelled_start(self, points: np.ndarray, camera_centers: np.ndarray | None) -> np.ndarray:
         """The pose [4,4] of a recording's first submap beside a map: its own ground plane (fitted to its
@@ -140,7 +147,6 @@ class Map:
         for sm in saved.submaps:
             self.graph.add_node(sm.id, sm.T_world_submap)
             self.odometry_poses[sm.id] = sm.T_world_submap.copy()
-            self.cameras[sm.id] = np.asarray(sm.camera_centers, np.float32).reshape(-1, 3)
             first = sm.id if sm.id == 0 or not any(e.kind == "odometry" and e.j == sm.id for e in saved.edges) \
                 else self.segment[sm.id - 1]
             self.segment[sm.id] = first

@@ -6,8 +6,8 @@ a first up direction (the ground plane's normal in each frame; each submap's own
 :func:`~vggt_slam_pp.backend.search.own_up`), the unit (``tile_size`` in each submap's
 scale), one initial guess among the others and, through :class:`LoopBounds`, how far odometry can
 have drifted; nothing else. Where both submaps' keyframe cameras stand at one height above their own
-ground (:func:`~vggt_slam_pp.backend.search.camera_height`: a car, a walker, a robot), the ratio of the
-two heights is the loop's scale: the search covers only scales near it, the estimate's guesses are
+ground (:func:`~vggt_slam_pp.backend.search.camera_height`, measured once per submap by the back-end: a
+car, a walker, a robot), the ratio of the two heights is the loop's scale: the search covers only scales near it, the estimate's guesses are
 rescaled to it, and a result at another scale is refused (``RegistrationConfig.height_cue``).
 
 0. **Clean-up.** Isolated points (flying pixels: a wrong depth in mid-air) are removed
@@ -49,7 +49,6 @@ from scipy.spatial import cKDTree
 
 from vggt_slam_pp.backend.search import (
     SearchConfig,
-    camera_height,
     colour_match,
     free_space_agreement,
     hue_vectors,
@@ -107,8 +106,10 @@ class RegistrationConfig:
     height_cue: bool = True  # cameras at one height above their ground in both submaps: their ratio is the
     # loop's scale (search.camera_height), searched within and verified against height_cue_tolerance
     height_cue_tolerance: float = 0.1  # |log s| between the loop's scale and the cameras' height ratio
-    height_cue_max_spread: float = 0.1  # std / median of a submap's camera heights for a steady height
+    height_cue_max_spread: float = 0.1  # robust spread (1.48 MAD / median) of a submap's camera heights for a
+    # steady height
     height_cue_min_tiles: float = 0.2  # lower cameras give no cue (a ratio of tiny heights is noise)
+    height_max_points: int = 20_000  # points (evenly subsampled) a submap's ground plane is fitted to
     use_colour: bool = True  # structure agrees by its image colour too (when the points have colours)
     full_saturation: float = 0.08  # chromaticity distance from grey at which a point's hue counts fully
     min_trans_sigma_tiles: float = 0.02  # loop information: sigma of the best-constrained translation
@@ -157,7 +158,8 @@ class LoopResult:
                 "overlap": self.overlap, "structure_overlap": self.structure_overlap, "residual": self.residual,
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
-                "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue}
+                "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
+                **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {})}
 
 
 def drift_bounds(config: RegistrationConfig, submaps: int, path: float, tile_size: float,
@@ -409,8 +411,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   chip_uv: np.ndarray | None = None, tile_uv: np.ndarray | None = None, score: float = 0.0,
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
-                  colors_match: np.ndarray | None = None, cameras_query: np.ndarray | None = None,
-                  cameras_match: np.ndarray | None = None) -> LoopResult:
+                  colors_match: np.ndarray | None = None, height_query: float | None = None,
+                  height_match: float | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -423,9 +425,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         bounds: what odometry can have drifted between the two (None: the physical limits only).
         colors_query, colors_match: [N,3], [M,3] uint8 image colours of the points (optional): structure
             then agrees by its hue too (:func:`~vggt_slam_pp.backend.search.hue_vectors`).
-        cameras_query, cameras_match: [S,3] the keyframes' camera centres, each in its own submap's frame
-            (optional): where both submaps' cameras stand at one height above their ground, the ratio of
-            the heights is the loop's scale (``RegistrationConfig.height_cue``).
+        height_query, height_match: each submap's cameras' height above its own ground, in its own units
+            (:func:`~vggt_slam_pp.backend.search.camera_height`; optional): with both, their ratio is the
+            loop's scale (``RegistrationConfig.height_cue``).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -468,13 +470,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         up_q = own_up(src, up_q, unit_q, c.max_up_tilt_deg, seed=query)
         up_m = own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match)
     cue = None
-    if c.height_cue:
-        h_q, h_m = (camera_height(P, C, u, c.ground_percentile, c.height_cue_max_spread, c.height_cue_min_tiles * tile)
-                    for P, C, u, tile in ((src, cameras_query, up_q, unit_q), (dst, cameras_match, up_m, unit)))
-        if h_q is not None and h_m is not None:
-            cue = (h_m / h_q, c.height_cue_tolerance)
-            for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
-                guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
+    if c.height_cue and height_query is not None and height_match is not None:
+        cue = (height_match / height_query, c.height_cue_tolerance)
+        for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
+            guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
 
     def off_cue(T: np.ndarray) -> bool:
         """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""

@@ -627,6 +627,28 @@ def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_d
     assert np.isclose(trans[3], 100 * trans[1])  # degraded: no measured link, the wide sigma inflated
 
 
+def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_relative_scale(tmp_path):
+    """A steady camera's submap may fail the steady-height test (a turn, pose noise); a loop from it still
+    gets the cue from a neighbour's height, carried into its units by the odometry's scale, but not
+    across an extrapolated (degraded) edge, whose scale was not measured."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.frontend.types import OdometryEdge
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"), Gallery(HogEncoder(), CovisibilityConfig()))
+    m.add_submap(0, None, np.zeros((0, 3)))
+    for i, (scale, degraded) in enumerate(((0.5, False), (1.0, False), (1.0, True)), 1):
+        step = make_sim3(scale, np.eye(3), np.array([10.0, 0.0, 0.0]))  # submap 1 in half 0's units
+        m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "points", degraded), np.zeros((0, 3)))
+    m.set_height(0, 1.6)
+    assert m.height(1) is None
+    assert np.isclose(m.height_near(1), 3.2) and np.isclose(m.height_near(2), 3.2)  # 1.6 m in half units
+    assert m.height_near(3) is None  # only through the degraded edge 2 -> 3 (and 0 is 3 submaps away)
+    m.set_height(3, 2.0)
+    assert m.height_near(3) == 2.0  # its own first
+
+
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
     """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
     scale change is not held against it when the cameras' heights measured that scale (monocular submaps
@@ -645,9 +667,9 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     P = backend.map.graph.poses
     b = backend.closer.bounds(2, 12)
 
-    def loop(C, cue):
+    def loop(C, cue, structure=0.5):
         Z = sim3_inverse(P[2]) @ C @ P[12]
-        return LoopResult(12, 2, True, "accepted", Z, C, 0.5, 0.5, 0.1, 0, 0.0, "search_1", scale_cue=cue)
+        return LoopResult(12, 2, True, "accepted", Z, C, 0.5, structure, 0.1, 0, 0.0, "search_1", scale_cue=cue)
 
     about = P[12][:3, 3]  # the query's centroid: a scale change about it moves nothing
     rescale = make_sim3(np.exp(0.6 * b.max_log_scale), np.eye(3), np.zeros(3))
@@ -657,6 +679,9 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(0.6 * b.max_yaw_deg)])), np.zeros(3))
     turn[:3, 3] = about - turn[:3, :3] @ about
     assert not backend.closer.odometry_consistent(loop(turn, 1.3))
+    # alone, a loop must clear the structure test with a margin: look-alikes sat at its edge
+    assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))
+    assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, structure=0.27))
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():

@@ -158,8 +158,9 @@ class Backend:
 
     def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None) -> None:
         """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_height`,
-        up guessed from the DEM plane at its pose) as a height factor, and its scale corrected by it at once
-        (a solve of it alone, its predecessor held). Needs the DEM plane; nothing for a camera that does not
+        up guessed from the DEM plane at its pose) as a height factor, and, while the graph uses heights
+        (:meth:`~vggt_slam_pp.backend.graph.PoseGraph.scale_noise`), its scale corrected by it at once (a solve
+        of it alone, its predecessor held). Needs the DEM plane; nothing for a camera that does not
         keep one height, or when neither the graph (``GraphConfig.height_factors``) nor loops
         (``RegistrationConfig.height_cue``) use heights."""
         m, c = self.map, self.config.registration
@@ -173,7 +174,7 @@ class Backend:
         if h is None or h * s < c.height_cue_min_tiles * grid.tile_size:  # a ratio of tiny heights is noise
             return
         m.set_height(sid, h)
-        if self.config.graph.height_factors and m.segment[sid] != sid:
+        if self.config.graph.height_factors and m.segment[sid] != sid and m.graph.scale_noise() is not None:
             t0 = time.perf_counter()
             m.graph.optimize({sid})
             self.timings["optimization_s"] += time.perf_counter() - t0

@@ -42,6 +42,8 @@ class BackendConfig:
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
+    lone_min_structure_overlap: float = 0.3  # a loop accepted without a partner needs this structure overlap
+    # (verification asks 0.25 of every loop; wrong ones accepted alone sat at 0.25-0.27: docs/backend.md)
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
     unplaced_candidates: int = 10  # its best covisible submaps by votes are all registered

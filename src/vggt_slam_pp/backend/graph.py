@@ -176,8 +176,8 @@ class PoseGraph:
         """``(odometry scale sigma, height sigma)`` for the solve, measured from the data, or None (too few
         heights: the heights then stay out of the graph).
 
-        Along a chain of odometry edges between submaps with heights, ``y_k = log(S_k h_k)`` (``S_k`` the
-        chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights' own
+        Along a chain of non-degraded odometry edges, at the submaps with heights, ``y_k = log(S_k h_k)``
+        (``S_k`` the chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights' own
         noise, so the robust variance of ``y_k - y_{k-L}`` is ``L sigma_o^2 + 2 sigma_h^2`` (a variogram):
         a line fitted over lags 1..``height_lags`` gives both. Heights are used only when ``sigma_o`` is at
         least ``min_scale_drift`` (a monocular front-end that drifts 6 % per submap, the realistic profile:
@@ -190,19 +190,19 @@ class PoseGraph:
         if self._scale_noise_at and n < self._scale_noise_at[0] * 1.05 + 1:
             return self._scale_noise_at[1]
         odo = {e.j: e for e in self.edges if e.kind == "odometry" and e.j == e.i + 1}
-        y: dict[int, float] = {}  # per chain of consecutive submaps with heights: y_k relative to its start
+        cum: dict[int, float] = {}  # chained log odometry scale along runs of non-degraded odometry edges
         chain: dict[int, int] = {}
-        for k in sorted(self.heights):
+        for k in sorted(self.poses):
             e = odo.get(k)
-            h, g = self.heights[k]
-            if e is not None and (k - 1) in y and not e.info.get("degraded") and self.heights[k - 1][1] == g:
-                y[k] = y[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0] * h / self.heights[k - 1][0]))
-                chain[k] = chain[k - 1]
+            if e is not None and (k - 1) in cum and not e.info.get("degraded"):
+                cum[k], chain[k] = cum[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0])), chain[k - 1]
             else:
-                y[k], chain[k] = 0.0, k
+                cum[k], chain[k] = 0.0, k
+        y = {k: cum[k] + float(np.log(h)) for k, (h, _) in self.heights.items()}
         lags, var = [], []
         for L in range(1, c.height_lags + 1):
-            d = np.array([y[k] - y[k - L] for k in y if (k - L) in y and chain[k - L] == chain[k]])
+            d = np.array([y[k] - y[k - L] for k in y if (k - L) in y and chain[k - L] == chain[k]
+                          and self.heights[k - L][1] == self.heights[k][1]])
             if len(d) >= c.height_min_edges:
                 lags.append(L)
                 var.append((1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2)

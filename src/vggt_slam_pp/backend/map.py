@@ -101,6 +101,23 @@ class Map:
         h = self.graph.heights.get(sid)
         return h[0] if h is not None else None
 
+    def height_near(self, sid: int, reach: int = 2) -> float | None:
+        """Submap ``sid``'s cameras' height, its units: its own, or, when it has none (its cameras' heights
+        spread too much: a turn, pose noise), the nearest submap's of its recording within ``reach``
+        submaps, carried into its units by their relative scale in the graph (a few submaps of odometry
+        are accurate in scale; the heights of a steady camera are not lost where one submap fails)."""
+        own = self.height(sid)
+        if own is not None or sid not in self.graph.poses:
+            return own
+        s = float(np.cbrt(np.linalg.det(self.graph.poses[sid][:3, :3])))
+        for d in range(1, reach + 1):
+            for k in (sid - d, sid + d):
+                h = self.height(k)
+                if h is not None and self.same_segment(k, sid) and not any(
+                        i in self.degraded_edges for i in range(min(k, sid), max(k, sid))):  # no extrapolated scale
+                    return h * float(np.cbrt(np.linalg.det(self.graph.poses[k][:3, :3]))) / s
+        return None
+
     def set_height(self, sid: int, height: float) -> None:
         """Submap ``sid``'s cameras stand ``height`` (its units) above its ground: a height factor in the
         graph, one world height per recording (segment)."""

@@ -159,7 +159,8 @@ class LoopResult:
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
                 "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
-                **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {})}
+                **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {}),
+                **({"information": self.information.tolist()} if self.information is not None else {})}
 
 
 def drift_bounds(config: RegistrationConfig, submaps: int, path: float, tile_size: float,

@@ -141,8 +141,9 @@ class Backend:
             self._deferred.append((sid, msg.camera_centers))
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3:
+            first = m.gallery.grid is None
             accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
-            if m.height(sid) is None:  # the first submap: the DEM plane exists only now
+            if first:  # the first submap: the DEM plane exists only now
                 self._measure_height(sid, points, msg.camera_centers)
         if accepted:
             self._solve_for(sid, accepted)
@@ -260,7 +261,8 @@ class Backend:
         while self._deferred:
             self.query_deferred()
         graph = self.map.graph
-        if (graph.heights and graph.config.height_factors) or any(e.kind == "loop" for e in graph.edges):
+        if (graph.config.height_factors and graph.heights and graph.scale_noise() is not None) or any(
+                e.kind == "loop" for e in graph.edges):
             # no query follows: the layers are not described again
             self._optimize(None, refresh=False)
             if self.closer.prune(self.config.min_loop_weight):

@@ -213,7 +213,7 @@ class PoseGraph:
             sigma_h = max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma)
             if sigma_o >= c.min_scale_drift:
                 used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
-                out = (used, sigma_h * used / sigma_o)
+                out = (used, max(sigma_h * used / sigma_o, c.min_height_sigma))
             log.debug("scale noise from %d heights: odometry %.4f, heights %.4f: %s", n, sigma_o, sigma_h,
                       f"height factors at {out[1]:.4f} (odometry {out[0]:.4f})" if out else "no height factors")
         self._scale_noise_at = (n, out)
@@ -318,7 +318,8 @@ class PoseGraph:
                      kernel: str, sigma: float) -> None:
         """The height factors of ``heights`` (log-scale ``sigma``) and a prior on each group's world height
         (free in scale when ``free_refs``, else held); the factors robust (Cauchy) unless ``kernel`` is
-        ``none``."""
+        ``none``: under GNC (which passes ``none``) they are plain Gaussian known inliers, its truncated loss
+        switching loops only."""
         import gtsam
 
         c = self.config

@@ -272,7 +272,8 @@ class LoopCloser:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`) closes
         a consistent cycle with the odometry chain itself: it needs no partner loop, if its structure overlap
         is at least ``lone_min_structure_overlap`` (every wrong loop accepted alone on the bench worlds,
-        realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25). Its scale change is not
+        realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25; a loop
+        registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its scale change is not
         tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry drifted,
         measured, not a sign of a wrong place (its turn and move still are tested)."""
         if not self.map.same_segment(r.match, r.query):

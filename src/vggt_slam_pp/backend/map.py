@@ -210,6 +210,8 @@ class Map:
             return np.eye(4)
         for i, T in self.graph.poses.items():
             self.graph.poses[i] = G @ T
+        for g in self.graph.height_refs:  # every world height with the frame's scale
+            self.graph.height_refs[g] *= float(np.cbrt(np.linalg.det(G[:3, :3])))
         return G
 
     def index_layer(self, submap_id: int, described: Described) -> None:
@@ -282,6 +284,8 @@ class Map:
             self.odometry_poses[i] = C @ self.odometry_poses[i]
             if i in self._layer_pose:
                 self._relocate(i)
+        if segment in self.graph.height_refs:  # the recording's world height moves with its scale
+            self.graph.height_refs[segment] *= float(np.cbrt(np.linalg.det(C[:3, :3])))
         self.placed.add(segment)  # segments stay the odometry chains: drift bounds and cycles still follow them
         return members
 

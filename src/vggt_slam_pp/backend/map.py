@@ -29,7 +29,7 @@ from vggt_slam_pp.backend.places import Described, Gallery
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError, DemError, GeometryError
 from vggt_slam_pp.frontend.types import OdometryEdge
-from vggt_slam_pp.geometry.lie import so3_exp, transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, so3_exp, transform_points
 from vggt_slam_pp.resources import release_free_memory
 
 log = logging.getLogger(__name__)
@@ -109,13 +109,13 @@ class Map:
         own = self.height(sid)
         if own is not None or sid not in self.graph.poses:
             return own
-        s = float(np.cbrt(np.linalg.det(self.graph.poses[sid][:3, :3])))
+        s = decompose_sim3(self.graph.poses[sid])[0]
         for d in range(1, reach + 1):
             for k in (sid - d, sid + d):
                 h = self.height(k)
                 if h is not None and self.same_segment(k, sid) and not any(
                         i in self.degraded_edges for i in range(min(k, sid), max(k, sid))):  # no extrapolated scale
-                    return h * float(np.cbrt(np.linalg.det(self.graph.poses[k][:3, :3]))) / s
+                    return h * decompose_sim3(self.graph.poses[k])[0] / s
         return None
 
     def set_height(self, sid: int, height: float) -> None:
@@ -211,7 +211,7 @@ class Map:
         for i, T in self.graph.poses.items():
             self.graph.poses[i] = G @ T
         for g in self.graph.height_refs:  # every world height with the frame's scale
-            self.graph.height_refs[g] *= float(np.cbrt(np.linalg.det(G[:3, :3])))
+            self.graph.height_refs[g] *= decompose_sim3(G)[0]
         return G
 
     def index_layer(self, submap_id: int, described: Described) -> None:
@@ -285,7 +285,7 @@ class Map:
             if i in self._layer_pose:
                 self._relocate(i)
         if segment in self.graph.height_refs:  # the recording's world height moves with its scale
-            self.graph.height_refs[segment] *= float(np.cbrt(np.linalg.det(C[:3, :3])))
+            self.graph.height_refs[segment] *= decompose_sim3(C)[0]
         self.placed.add(segment)  # segments stay the odometry chains: drift bounds and cycles still follow them
         return members
 

@@ -10,6 +10,7 @@ import pytest
 from conftest import random_sim3, random_trajectory
 from vggt_slam_pp.errors import EvaluationError
 from vggt_slam_pp.eval import associate, compute_ate, compute_rpe
+from vggt_slam_pp.eval.metrics import best_time_offset
 from vggt_slam_pp.geometry import decompose_sim3, se3_exp
 from vggt_slam_pp.io.trajectory import Trajectory
 
@@ -103,3 +104,18 @@ def test_kitti_rows_match_by_index_only_with_equal_lengths(rng):
         compute_ate(gt, rows)
     with pytest.raises(EvaluationError, match="equal lengths"):
         compute_ate(rows, rows.subset(np.arange(10)))
+
+
+def test_best_time_offset_finds_a_clock_shift_and_only_where_the_reference_is_dense(rng):
+    """An estimate whose camera clock runs 40 ms behind a 200 Hz ground truth (its pose at time t is the truth's
+    at t + 0.04): the scan finds +40 ms and an ATE near 0 there, where the plain ATE is not; a ground truth
+    sampled as sparsely as the estimate (a photo walk) gives no diagnostic."""
+    gt = random_trajectory(rng, n=2000, dt=0.005)
+    idx = np.arange(20, 1980, 10)  # 20 Hz keyframes
+    est = Trajectory(gt.timestamps[idx] - 0.04, gt.poses[idx])
+    plain = compute_ate(gt, est, "sim3")
+    offset, there = best_time_offset(gt, est)
+    assert offset == pytest.approx(0.04, abs=1e-9)
+    assert there.rmse < 1e-9 < 1e-3 < plain.rmse and there.n_matched == plain.n_matched == len(idx)
+    sparse = Trajectory(gt.timestamps[::200], gt.poses[::200])
+    assert best_time_offset(sparse, Trajectory(sparse.timestamps, sparse.poses)) is None

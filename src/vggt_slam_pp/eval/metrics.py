@@ -25,7 +25,7 @@ AlignMode = Literal["sim3", "se3", "none"]
 ALIGN_MODES: tuple[str, ...] = ("sim3", "se3", "none")
 
 __all__ = ["ALIGN_MODES", "AlignMode", "AteResult", "RpeResult", "associate", "align_trajectory",
-           "compute_ate", "compute_rpe"]
+           "best_time_offset", "compute_ate", "compute_rpe"]
 
 
 def associate(ref: Trajectory, est: Trajectory, max_diff: float = 0.01, offset: float = 0.0
@@ -157,6 +157,29 @@ def compute_ate(ref: Trajectory, est: Trajectory, align: str = "sim3", max_diff:
     err = np.linalg.norm(ref_p[:, :3, 3] - aligned[:, :3, 3], axis=1)
     return AteResult(**_stats(err), n_matched=len(err), scale=s, align=align, T_ref_est=T, errors=err,
                      index_ref=i_ref, index_est=i_est)
+
+
+def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: float = 0.005,
+                     align: str = "sim3", max_diff: float = 0.01) -> tuple[float, AteResult] | None:
+    """The time offset in ``[-span, span]`` s (steps of ``step``) added to ``est``'s times that minimises its
+    ATE, with that ATE: a diagnostic of the data's timing (camera clock against ground-truth clock), never
+    part of a reported ATE. None when either trajectory lacks timestamps or the reference is too sparse to
+    be matched at shifted times (median spacing over ``2 * max_diff``: photo walks, frame-index times).
+    Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
+    if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2:
+        return None
+    if float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:
+        return None
+    base = compute_ate(ref, est, align, max_diff)
+    best = (0.0, base)
+    for offset in np.arange(-span, span + step / 2, step):
+        try:
+            r = compute_ate(ref, est, align, max_diff, float(offset))
+        except (EvaluationError, GeometryError):
+            continue
+        if r.n_matched >= base.n_matched and r.rmse < best[1].rmse:
+            best = (round(float(offset), 6), r)
+    return best
 
 
 def compute_rpe(ref: Trajectory, est: Trajectory, delta: int = 1, align: str = "sim3", max_diff: float = 0.01,

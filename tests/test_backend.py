@@ -1034,3 +1034,39 @@ def test_drift_bounds_follow_the_shortest_path_through_accepted_loops(tmp_path):
     hops, length, degraded, loops = closer.drift_path(38, 1)
     assert (hops, length, loops, degraded) == (2, 20.0, 1, [10.0])
     assert closer.bounds(1, 38).max_translation > short.max_translation + reg.degraded_steps * 10.0 - 1e-9
+
+
+
+def test_proximity_reaches_as_far_as_the_estimate_can_have_drifted_between_the_two(tmp_path):
+    """Out along a street and back (20 m steps), the way back estimated 30 m off sideways, beyond the
+    proximity radius (20 m): the revisit's first query finds the submap at its place through the drift the
+    long chain between them allows (6 % of 550 m), not its own trail (little drift allowed) nor the
+    neighbours of the place beyond that drift; capped by ``proximity_max_reach_tiles``; an accepted loop
+    shortens the reach through the graph."""
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.backend.backend import BackendConfig
+    from vggt_slam_pp.backend.graph import Edge
+    from vggt_slam_pp.backend.loops import LoopCloser
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"),
+            Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0))))
+    m.gallery.grid = SimpleNamespace(tile_size=2.0)
+    for i in range(40):  # submap i and 39 - i are at the same place
+        m.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([20.0 * min(i, 39 - i), 30.0 if i >= 20 else 0.0, 0])))
+        m.segment[i] = 0
+        m._centroid[i] = np.zeros(3)
+    m.placed.add(0)
+    res = SimpleNamespace(candidates=[], edges=[])
+    closer = LoopCloser(BackendConfig(), m)
+    reach = closer.drift_reach(33, np.inf)
+    assert reach[30] == pytest.approx(0.06 * 60) and reach[6] == pytest.approx(0.06 * 550)  # 6 is 30 m away
+    assert [(j, s) for j, _, _, s in closer.candidates(33, res)] == [(6, "proximity")]
+    assert LoopCloser(BackendConfig(proximity_max_reach_tiles=10.0), m).candidates(33, res) == []
+    m.graph.add_edge(Edge(9, 30, np.eye(4), np.full(7, 0.1), "loop"))  # a loop 30 -> 9, three submaps back
+    assert closer.drift_reach(33, np.inf)[6] == pytest.approx(0.06 * 60 + 4.0 + 0.06 * 60)
+    assert closer.candidates(33, res) == []  # there the estimate must be corrected first: 30 m is too far

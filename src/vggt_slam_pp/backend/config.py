@@ -31,6 +31,9 @@ class BackendConfig:
     candidates_per_query: int = 3
     proximity_candidates: int = 2  # also verify the nearest earlier submaps in the current estimate
     proximity_radius_tiles: float = 10.0
+    proximity_max_reach_tiles: float = 50.0  # ... or farther, as far as the estimate can have drifted between the
+    # two through the pose graph (LoopCloser.drift_reach), up to this: the first query of a revisit that odometry
+    # brought back within its own drift, farther than the radius (docs/backend.md)
     far_loop_submaps: int = 10
     window_neighbours: int = 1
     dem_max_points: int = 200_000

@@ -4,7 +4,8 @@ which verified registrations become edges of the pose graph.
 :class:`LoopCloser` works on a :class:`~vggt_slam_pp.backend.map.Map`:
 
 1. candidates (:meth:`LoopCloser.candidates`): the best ``candidates_per_query`` by place recognition, plus
-   the ``proximity_candidates`` nearest earlier submaps in the current estimate; a submap of a recording
+   the ``proximity_candidates`` nearest earlier submaps in the current estimate (within a radius, or within
+   what the estimate can have drifted between the two); a submap of a recording
    not yet placed in the map gets its ``unplaced_candidates`` best covisible submaps by votes instead;
 2. each is registered and verified (:func:`~vggt_slam_pp.backend.registration.register_loop`) within the
    bounds odometry allows (:meth:`LoopCloser.bounds`, along the least uncertain path through the pose
@@ -72,8 +73,10 @@ class LoopCloser:
         """(match, score, margin, source): the best ``candidates_per_query`` by place recognition
         (VLAD-ranked, then covisibility order; source "retrieval"), plus the ``proximity_candidates``
         earlier submaps whose point centroid is nearest in the current estimate (within
-        ``proximity_radius_tiles``; "proximity"): retrieval finds loops the estimate has drifted away
-        from, proximity the ones it has not; verification decides for both. With fault injection
+        ``proximity_radius_tiles``, or within what the estimate can have drifted between the two through the
+        pose graph, :meth:`drift_reach`, up to ``proximity_max_reach_tiles``; "proximity"): retrieval finds
+        loops the estimate has drifted away from, proximity the ones it has not, or not beyond what odometry
+        since the last loop allows; verification decides for both. With fault injection
         (``faults.wrong_candidates`` > 0), that share of queries also gets a submap from elsewhere
         ("injected"). A submap of a recording not yet placed in the map gets its ``unplaced_candidates``
         best covisible submaps by votes instead, and no proximity candidates (its position means nothing
@@ -99,10 +102,12 @@ class LoopCloser:
             if old:
                 d = np.array([np.linalg.norm(m.centroid_world(j) - here) for j in old])
                 radius = self.config.proximity_radius_tiles * self.tile_size
+                # or as far as the estimate can have drifted between the two (through the graph), up to a limit
+                reach = self.drift_reach(sid, self.config.proximity_max_reach_tiles * self.tile_size)
+                gate = np.array([max(radius, reach.get(j, 0.0)) for j in old])
                 taken = {j for j, *_ in out}
-                for k in np.argsort(d)[: self.config.proximity_candidates]:
-                    if d[k] <= radius and old[k] not in taken:
-                        out.append((old[k], 0.0, np.inf, "proximity"))
+                near = [k for k in np.argsort(d, kind="stable") if d[k] <= gate[k]][: self.config.proximity_candidates]
+                out += [(old[k], 0.0, np.inf, "proximity") for k in near if old[k] not in taken]
                 out += self._injected(old, d, radius, {j for j, *_ in out})
         return out
 
@@ -310,6 +315,23 @@ class LoopCloser:
         plus ``degraded_steps`` of it for a degraded edge; ``loop_hop_tiles`` for a loop). Returns (odometry
         edges on it, their total length, the lengths of its degraded edges, loops on it); without loops this
         is the chain of odometry between the two."""
+        _, state = self._drift_search(a, b)
+        if b in state:
+            hops, length, degraded, loops = state[b]
+            return hops, length, list(degraded), loops
+        lo, hi = min(a, b), max(a, b)  # not connected (cannot happen within a segment): the id chain
+        steps = self.map.steps(lo, hi)
+        return hi - lo, float(steps.sum()), [], 0
+
+    def drift_reach(self, a: int, limit: float) -> dict[int, float]:
+        """How far (world units) the estimate can have drifted between submap ``a`` and each submap it reaches
+        through the pose graph within ``limit`` (the least along any path, as :meth:`drift_path` measures it)."""
+        best, _ = self._drift_search(a, None, limit)
+        return best
+
+    def _drift_search(self, a: int, b: int | None, limit: float = np.inf) -> tuple[dict, dict]:
+        """Dijkstra from ``a`` (to ``b``, or to every submap within ``limit``): (drift per submap, path state per
+        submap: hops, length, degraded lengths, loops)."""
         import heapq
 
         m, reg = self.map, self.config.registration
@@ -326,8 +348,7 @@ class LoopCloser:
         while heap:
             cost, i = heapq.heappop(heap)
             if i == b:
-                hops, length, degraded, loops = state[i]
-                return hops, length, list(degraded), loops
+                break
             if cost > best.get(i, np.inf):
                 continue
             hops, length, degraded, loops = state[i]
@@ -341,13 +362,11 @@ class LoopCloser:
             for j in loop_adj.get(i, ()):
                 steps.append((j, hop_cost, (hops, length, degraded, loops + 1)))
             for j, add, st in steps:
-                if cost + add < best.get(j, np.inf):
+                if cost + add < best.get(j, np.inf) and cost + add <= limit:
                     best[j] = cost + add
                     state[j] = st
                     heapq.heappush(heap, (cost + add, j))
-        lo, hi = min(a, b), max(a, b)  # not connected (cannot happen within a segment): the id chain
-        steps = m.steps(lo, hi)
-        return hi - lo, float(steps.sum()), [], 0
+        return best, state
 
     def prune(self, min_weight: float) -> int:
         """Loops the robust pose graph switched off (weight below ``min_weight`` after a global solve:

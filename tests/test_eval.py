@@ -109,7 +109,7 @@ def test_kitti_rows_match_by_index_only_with_equal_lengths(rng):
 def test_best_time_offset_finds_a_clock_shift_and_only_where_the_reference_is_dense(rng):
     """An estimate whose camera clock runs 40 ms behind a 200 Hz ground truth (its pose at time t is the truth's
     at t + 0.04): the scan finds +40 ms and an ATE near 0 there, where the plain ATE is not; a ground truth
-    sampled as sparsely as the estimate (a photo walk) gives no diagnostic."""
+    sampled as sparsely as the estimate (a photo walk) gives no diagnostic, nor one without an ATE at 0."""
     gt = random_trajectory(rng, n=2000, dt=0.005)
     idx = np.arange(20, 1980, 10)  # 20 Hz keyframes
     est = Trajectory(gt.timestamps[idx] - 0.04, gt.poses[idx])
@@ -117,5 +117,12 @@ def test_best_time_offset_finds_a_clock_shift_and_only_where_the_reference_is_de
     offset, there = best_time_offset(gt, est)
     assert offset == pytest.approx(0.04, abs=1e-9)
     assert there.rmse < 1e-9 < 1e-3 < plain.rmse and there.n_matched == plain.n_matched == len(idx)
+    # a shift that drops a bad pose off the end of the ground truth does not count as a better fit
+    last = np.arange(19, 2000, 10)  # the last keyframe is the truth's last sample
+    poses = gt.poses[last].copy()
+    poses[-1, :3, 3] += 1.0  # a bad last pose: past +50 ms it leaves the truth, and the fit would look better
+    offset, there = best_time_offset(gt, Trajectory(gt.timestamps[last] - 0.04, poses))
+    assert abs(offset - 0.04) <= 0.01 and there.n_matched == len(last)
     sparse = Trajectory(gt.timestamps[::200], gt.poses[::200])
     assert best_time_offset(sparse, Trajectory(sparse.timestamps, sparse.poses)) is None
+    assert best_time_offset(gt, Trajectory(gt.timestamps[:2] + 50.0, gt.poses[:2])) is None  # nothing matches

@@ -15,7 +15,7 @@ from vggt_slam_pp.backend.registration import RegistrationConfig
 class FaultConfig:
     """Fault injection, for tests of the verification's robustness; off by default."""
 
-    wrong_candidates: float = 0.0  # share of queries given a wrong candidate from beyond the proximity radius
+    wrong_candidates: float = 0.0  # share of queries given a wrong candidate from beyond the proximity gate
     # (it goes through verification like any other)
     slow_submap_s: float = 0.0  # the back-end sleeps this long for every submap (a back-end that cannot keep up)
 
@@ -32,8 +32,8 @@ class BackendConfig:
     proximity_candidates: int = 2  # also verify the nearest earlier submaps in the current estimate
     proximity_radius_tiles: float = 10.0
     proximity_max_reach_tiles: float = 50.0  # ... or farther, as far as the estimate can have drifted between the
-    # two through the pose graph (LoopCloser.drift_reach), up to this: the first query of a revisit that odometry
-    # brought back within its own drift, farther than the radius (docs/backend.md)
+    # two through the pose graph (LoopCloser.drift_reach) where that is at most this (beyond it, the radius): the
+    # first query of a revisit that odometry brought back within its own drift, farther than the radius
     far_loop_submaps: int = 10
     window_neighbours: int = 1
     dem_max_points: int = 200_000

@@ -74,7 +74,7 @@ class LoopCloser:
         (VLAD-ranked, then covisibility order; source "retrieval"), plus the ``proximity_candidates``
         earlier submaps whose point centroid is nearest in the current estimate (within
         ``proximity_radius_tiles``, or within what the estimate can have drifted between the two through the
-        pose graph, :meth:`drift_reach`, up to ``proximity_max_reach_tiles``; "proximity"): retrieval finds
+        pose graph, :meth:`drift_reach`, where that is at most ``proximity_max_reach_tiles``; "proximity"): retrieval finds
         loops the estimate has drifted away from, proximity the ones it has not, or not beyond what odometry
         since the last loop allows; verification decides for both. With fault injection
         (``faults.wrong_candidates`` > 0), that share of queries also gets a submap from elsewhere
@@ -104,21 +104,23 @@ class LoopCloser:
                 radius = self.config.proximity_radius_tiles * self.tile_size
                 # or as far as the estimate can have drifted between the two (through the graph), up to a limit
                 reach = self.drift_reach(sid, self.config.proximity_max_reach_tiles * self.tile_size)
+                # (a submap the estimate can have drifted more than the limit from keeps the radius: that far,
+                # the nearest in the estimate is no better a guess than retrieval's)
                 gate = np.array([max(radius, reach.get(j, 0.0)) for j in old])
                 taken = {j for j, *_ in out}
                 near = [k for k in np.argsort(d, kind="stable") if d[k] <= gate[k]][: self.config.proximity_candidates]
                 out += [(old[k], 0.0, np.inf, "proximity") for k in near if old[k] not in taken]
-                out += self._injected(old, d, radius, {j for j, *_ in out})
+                out += self._injected(old, d, gate, {j for j, *_ in out})
         return out
 
-    def _injected(self, old: list[int], dist: np.ndarray, radius: float, taken: set[int]) -> list:
+    def _injected(self, old: list[int], dist: np.ndarray, gate: np.ndarray, taken: set[int]) -> list:
         """Fault injection: every ``1 / faults.wrong_candidates``-th query gets the nearest earlier submap
-        beyond the proximity radius (a hard negative: close enough to reach registration)."""
+        beyond its proximity gate ``gate`` [len(old)] (a hard negative: close enough to reach registration)."""
         rate = self.config.faults.wrong_candidates
         self._queries += 1
         if rate <= 0 or int(self._queries * rate) == int((self._queries - 1) * rate):
             return []
-        far = [(dj, j) for j, dj in zip(old, dist, strict=True) if dj > radius and j not in taken]
+        far = [(dj, j) for j, dj, gj in zip(old, dist, gate, strict=True) if dj > gj and j not in taken]
         return [(min(far)[1], 0.0, np.inf, "injected")] if far else []
 
     # -- verification and acceptance ----------------------------------------------------------------

@@ -168,9 +168,14 @@ def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: 
     Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
     if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2:
         return None
-    if float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:
+    if len(est) == 0 or float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:
         return None
-    base = compute_ate(ref, est, align, max_diff)
+    try:
+        base = compute_ate(ref, est, align, max_diff)
+    except (EvaluationError, GeometryError):
+        return None
+    if not np.isfinite(base.rmse):
+        return None
     best = (0.0, base)
     for offset in np.arange(-span, span + step / 2, step):
         try:

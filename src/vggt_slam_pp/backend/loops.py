@@ -74,9 +74,9 @@ class LoopCloser:
         (VLAD-ranked, then covisibility order; source "retrieval"), plus the ``proximity_candidates``
         earlier submaps whose point centroid is nearest in the current estimate (within
         ``proximity_radius_tiles``, or within what the estimate can have drifted between the two through the
-        pose graph, :meth:`drift_reach`, where that is at most ``proximity_max_reach_tiles``; "proximity"): retrieval finds
-        loops the estimate has drifted away from, proximity the ones it has not, or not beyond what odometry
-        since the last loop allows; verification decides for both. With fault injection
+        pose graph, :meth:`drift_reach`, where that is at most ``proximity_max_reach_tiles``; "proximity"):
+        retrieval finds loops the estimate has drifted away from, proximity the ones it has not, or not beyond
+        what odometry allows; verification decides for both. With fault injection
         (``faults.wrong_candidates`` > 0), that share of queries also gets a submap from elsewhere
         ("injected"). A submap of a recording not yet placed in the map gets its ``unplaced_candidates``
         best covisible submaps by votes instead, and no proximity candidates (its position means nothing
@@ -102,10 +102,9 @@ class LoopCloser:
             if old:
                 d = np.array([np.linalg.norm(m.centroid_world(j) - here) for j in old])
                 radius = self.config.proximity_radius_tiles * self.tile_size
-                # or as far as the estimate can have drifted between the two (through the graph), up to a limit
+                # or as far as the estimate can have drifted between the two through the graph, where that is
+                # within a limit (beyond it the radius holds: the nearest in the estimate is no better a guess)
                 reach = self.drift_reach(sid, self.config.proximity_max_reach_tiles * self.tile_size)
-                # (a submap the estimate can have drifted more than the limit from keeps the radius: that far,
-                # the nearest in the estimate is no better a guess than retrieval's)
                 gate = np.array([max(radius, reach.get(j, 0.0)) for j in old])
                 taken = {j for j, *_ in out}
                 near = [k for k in np.argsort(d, kind="stable") if d[k] <= gate[k]][: self.config.proximity_candidates]

@@ -163,12 +163,12 @@ def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: 
                      align: str = "sim3", max_diff: float = 0.01) -> tuple[float, AteResult] | None:
     """The time offset in ``[-span, span]`` s (steps of ``step``) added to ``est``'s times that minimises its
     ATE, with that ATE: a diagnostic of the data's timing (camera clock against ground-truth clock), never
-    part of a reported ATE. None when either trajectory lacks timestamps or the reference is too sparse to
-    be matched at shifted times (median spacing over ``2 * max_diff``: photo walks, frame-index times).
-    Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
-    if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2:
+    part of a reported ATE. None when either trajectory lacks timestamps, when the reference is too sparse
+    to be matched at shifted times (median spacing over ``2 * max_diff``: photo walks, frame-index times), or
+    when there is no ATE at offset 0 (too few matches, no finite error). Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
+    if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2 or len(est) == 0:
         return None
-    if len(est) == 0 or float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:
+    if float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:
         return None
     try:
         base = compute_ate(ref, est, align, max_diff)

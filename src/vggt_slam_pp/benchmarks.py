@@ -827,7 +827,7 @@ def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequenc
             "keyframes_median": float(np.median([p["keyframes"] for p in per_run])),
             "registered_frames_min": int(min(p["registered_frames"] for p in per_run)),
             "fps": float(np.median([p["fps"] for p in per_run])),
-            # diagnostic only (docs/benchmarks.md): the camera-to-ground-truth clock offset that fits best
+            # diagnostic only (docs/benchmarks.md): the time offset that fits best (clock or along-track error)
             "time_offset_s_median": _median_or_none([p["time_offset_s"] for p in per_run]),
             "ate_at_time_offset_median": _median_or_none([p["ate_at_time_offset"] for p in per_run]),
             "per_run": per_run,

@@ -162,8 +162,9 @@ def compute_ate(ref: Trajectory, est: Trajectory, align: str = "sim3", max_diff:
 def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: float = 0.005,
                      align: str = "sim3", max_diff: float = 0.01) -> tuple[float, AteResult] | None:
     """The time offset in ``[-span, span]`` s (steps of ``step``) added to ``est``'s times that minimises its
-    ATE, with that ATE: a diagnostic of the data's timing (camera clock against ground-truth clock), never
-    part of a reported ATE. None when either trajectory lacks timestamps, when the reference is too sparse
+    ATE, with that ATE: a diagnostic, never part of a reported ATE. Both a camera clock that lags the ground
+    truth's and an along-track error of the estimate (a scale error, say) show as an offset, so the offset alone
+    does not tell which (docs/experiments.md, session 23). None when either trajectory lacks timestamps, when the reference is too sparse
     to be matched at shifted times (median spacing over ``2 * max_diff``: photo walks, frame-index times), or
     when there is no ATE at offset 0 (too few matches, no finite error). Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
     if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2 or len(est) == 0:

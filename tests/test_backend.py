@@ -1036,7 +1036,6 @@ def test_drift_bounds_follow_the_shortest_path_through_accepted_loops(tmp_path):
     assert closer.bounds(1, 38).max_translation > short.max_translation + reg.degraded_steps * 10.0 - 1e-9
 
 
-
 def test_proximity_reaches_as_far_as_the_estimate_can_have_drifted_between_the_two(tmp_path):
     """Out along a street and back (20 m steps), the way back estimated 30 m off sideways, beyond the
     proximity radius (20 m): the revisit's first query finds the submap at its place through the drift the

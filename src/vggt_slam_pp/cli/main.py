@@ -447,9 +447,9 @@ def _default_data() -> Path:
 
 def _frontend_table(result: dict) -> str:
     head = (f"{'sequence':<28}{'runs':>5}{'ATE med':>9}{'worst':>8}{'std':>8}{'% path':>8}{'degraded':>9}"
-            f"{'recovered':>10}{'keyframes':>10}{'reg. min':>9}{'fps':>7}{'clock':>8}{'ATE there':>10}")
+            f"{'recovered':>10}{'keyframes':>10}{'reg. min':>9}{'fps':>7}{'offset':>8}{'ATE there':>10}")
     rows = [f"colmap front-end, seeds 0..{result['runs'] - 1}, no back-end; ATE: Sim(3)-aligned keyframes, metres",
-            "clock: the time offset (ms) added to the estimate that fits best, with the ATE there (a diagnostic, not a "
+            "offset: the time offset (ms) added to the estimate that fits best, with the ATE there (a diagnostic, not a "
             "result: a clock lag and an along-track error both show as an offset)", head]
     for r in result["sequences"]:
         if "skipped" in r:

@@ -163,10 +163,12 @@ def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: 
                      align: str = "sim3", max_diff: float = 0.01) -> tuple[float, AteResult] | None:
     """The time offset in ``[-span, span]`` s (steps of ``step``) added to ``est``'s times that minimises its
     ATE, with that ATE: a diagnostic, never part of a reported ATE. Both a camera clock that lags the ground
-    truth's and an along-track error of the estimate (a scale error, say) show as an offset, so the offset alone
-    does not tell which (docs/experiments.md, session 23). None when either trajectory lacks timestamps, when the reference is too sparse
-    to be matched at shifted times (median spacing over ``2 * max_diff``: photo walks, frame-index times), or
-    when there is no ATE at offset 0 (too few matches, no finite error). Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the hard ends)."""
+    truth's and an along-track error of the estimate (a scale error, say) show as an offset, so the offset
+    alone does not tell which (docs/experiments.md, session 23). None when either trajectory lacks
+    timestamps, when the reference is too sparse to be matched at shifted times (median spacing over
+    ``2 * max_diff``: photo walks, frame-index times), or when there is no ATE at offset 0 (too few matches,
+    no finite error). Offsets at which fewer poses match than at 0 are skipped (a shift must not drop the
+    hard ends)."""
     if not (ref.has_timestamps and est.has_timestamps) or len(ref) < 2 or len(est) == 0:
         return None
     if float(np.median(np.diff(np.sort(ref.timestamps)))) > 2 * max_diff:

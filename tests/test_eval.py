@@ -10,7 +10,7 @@ import pytest
 from conftest import random_sim3, random_trajectory
 from vggt_slam_pp.errors import EvaluationError
 from vggt_slam_pp.eval import associate, compute_ate, compute_rpe
-from vggt_slam_pp.eval.metrics import best_time_offset
+from vggt_slam_pp.eval.metrics import best_time_offset, submaps_placed_best
 from vggt_slam_pp.geometry import decompose_sim3, se3_exp
 from vggt_slam_pp.io.trajectory import Trajectory
 
@@ -126,3 +126,29 @@ def test_best_time_offset_finds_a_clock_shift_and_only_where_the_reference_is_de
     sparse = Trajectory(gt.timestamps[::200], gt.poses[::200])
     assert best_time_offset(sparse, Trajectory(sparse.timestamps, sparse.poses)) is None
     assert best_time_offset(gt, Trajectory(gt.timestamps[:2] + 50.0, gt.poses[:2])) is None  # nothing matches
+
+
+def test_submaps_placed_best_measures_the_error_inside_the_submaps_not_between_them(rng):
+    """Three overlapping submaps, each in its own arbitrary Sim(3) frame with millimetre noise: placed best,
+    the error is the noise, however wrong the links between them; a submap bent inside (its scale drifting
+    along it) shows; an overlap keyframe counts once; a submap with too few keyframes is left out."""
+    from vggt_slam_pp.geometry.lie import transform_points
+
+    gt = random_trajectory(rng, n=60)
+    ref = {i: p for i, p in enumerate(gt.positions)}
+    spans = [np.arange(0, 25), np.arange(20, 45), np.arange(40, 60)]
+
+    def submap(frames, noise=0.001, bend=0.0):
+        local = gt.positions[frames] - gt.positions[frames[0]]
+        local = local * (1.0 + bend * np.linspace(0.0, 1.0, len(frames)))[:, None]
+        return frames, transform_points(random_sim3(rng), local + rng.normal(0.0, noise, local.shape))
+
+    rmse, fitted = submaps_placed_best([submap(f) for f in spans], ref)
+    assert fitted == 3 and rmse < 0.003
+    bent, _ = submaps_placed_best([submap(spans[0]), submap(spans[1], bend=0.3), submap(spans[2])], ref)
+    assert bent > 10 * rmse
+    # counted once: the same submap twice adds nothing; two keyframes cannot be fitted
+    twice, fitted = submaps_placed_best([submap(spans[0], noise=0.0)] * 2 + [submap(np.arange(58, 60))], ref)
+    assert fitted == 2 and twice < 1e-9
+    assert submaps_placed_best([submap(np.arange(3))], {}) is None
+

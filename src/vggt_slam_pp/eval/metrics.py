@@ -25,7 +25,7 @@ AlignMode = Literal["sim3", "se3", "none"]
 ALIGN_MODES: tuple[str, ...] = ("sim3", "se3", "none")
 
 __all__ = ["ALIGN_MODES", "AlignMode", "AteResult", "RpeResult", "associate", "align_trajectory",
-           "best_time_offset", "compute_ate", "compute_rpe"]
+           "best_time_offset", "compute_ate", "compute_rpe", "submaps_placed_best"]
 
 
 def associate(ref: Trajectory, est: Trajectory, max_diff: float = 0.01, offset: float = 0.0
@@ -188,6 +188,43 @@ def best_time_offset(ref: Trajectory, est: Trajectory, span: float = 0.1, step: 
         if r.n_matched >= base.n_matched and r.rmse < best[1].rmse:
             best = (round(float(offset), 6), r)
     return best
+
+
+def submaps_placed_best(submaps: list[tuple[np.ndarray, np.ndarray]], ref_positions: dict[int, np.ndarray]
+                        ) -> tuple[float, int] | None:
+    """The keyframe ATE (RMSE, reference units) with every submap placed where it fits the reference best: a
+    diagnostic that splits a chained trajectory's error into what lies inside the submaps (this figure) and
+    what the links between them add (the chained ATE above it).
+
+    Args:
+        submaps: per submap, ``(frame indices [S], camera centres [S,3] in the submap's frame)`` of its
+            registered keyframes.
+        ref_positions: reference camera position [3] per frame index.
+
+    Each submap is fitted on its own (Umeyama Sim(3) of its centres onto the reference's); a keyframe counts
+    once, in the first submap that holds it. Submaps with fewer than 3 referenced keyframes, or whose centres
+    are degenerate (collinear), are left out. Returns (RMSE, submaps fitted), or None when none could be."""
+    seen: set[int] = set()
+    residuals, fitted = [], 0
+    for frames, centres in submaps:
+        keep = np.array([int(f) in ref_positions for f in frames], bool)
+        if keep.sum() < 3:
+            continue
+        f_kept, c_kept = np.asarray(frames)[keep], np.asarray(centres, float)[keep]
+        ref = np.array([ref_positions[int(f)] for f in f_kept])
+        try:
+            T = umeyama(c_kept, ref)
+        except GeometryError:
+            continue
+        fitted += 1
+        new = np.array([int(f) not in seen for f in f_kept], bool)
+        seen.update(int(f) for f in f_kept)
+        placed = c_kept[new] @ T[:3, :3].T + T[:3, 3]
+        residuals.append(np.linalg.norm(placed - ref[new], axis=1))
+    if not fitted:
+        return None
+    r = np.concatenate(residuals)
+    return float(np.sqrt(np.mean(r ** 2))), fitted
 
 
 def compute_rpe(ref: Trajectory, est: Trajectory, delta: int = 1, align: str = "sim3", max_diff: float = 0.01,

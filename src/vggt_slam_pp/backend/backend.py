@@ -81,7 +81,7 @@ class BackendResult:
     loop_weights: list[float]  # robust weight of each loop edge, in the order of ``edges``
     covisibility: list[CovisibilityEdge]
     loops: list[LoopResult]  # every verified candidate, accepted or not, with its reason
-    seconds_per_submap: list[float]
+    seconds_per_submap: list[float]  # each submap's back-end time, its query included wherever it ran
     timings: dict[str, float]
     plane: dict | None
     tile_size: float | None
@@ -113,7 +113,8 @@ class Backend:
                         "deferred_s": 0.0}
         self.memory_trace: list[tuple[int, float]] = []
         self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
-        self._deferred: deque[tuple[int, np.ndarray]] = deque()  # (submap, camera centres) still to query
+        self._deferred: deque[tuple[int, np.ndarray, int]] = deque()  # (submap, camera centres, its entry in
+        # ``seconds``: a deferred query's time counts for its submap) still to query
         self._version = 0
 
     def seed_map(self, saved, localize_only: bool = False) -> None:
@@ -124,8 +125,11 @@ class Backend:
     def add_submap(self, msg: SubmapMessage, query: bool = True) -> PoseSnapshot:
         """One new submap. ``query=False`` (a worker catching up): it joins the graph and its layer the
         gallery now, and its query of the map for loops is deferred (:meth:`query_deferred`, run when the
-        worker is idle and at :meth:`finish`; listed in :attr:`BackendResult.skipped`)."""
+        worker is idle and at :meth:`finish`; listed in :attr:`BackendResult.skipped`). While deferred queries
+        wait, a new one waits behind them: queries run in submap order, so each has its predecessor's matches
+        (the sequence prior) and the corrections of the loops before it (proximity)."""
         t_start = time.perf_counter()
+        query = query and not self._deferred
         if self.config.faults.slow_submap_s > 0:
             time.sleep(self.config.faults.slow_submap_s)
         m, sid = self.map, msg.submap_id
@@ -138,7 +142,7 @@ class Backend:
             if m.index_new:
                 m.index_layer(sid, m.gallery.describe(sid, m.layer_points(sid)))
             self.skipped.append(sid)
-            self._deferred.append((sid, msg.camera_centers))
+            self._deferred.append((sid, msg.camera_centers, len(self.seconds)))
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3:
             first = m.gallery.grid is None
@@ -211,11 +215,13 @@ class Backend:
         """Run the oldest deferred query: the submap (already in the graph and the gallery) queries the map
         at its current pose, as if it had just arrived; only older submaps can be its candidates."""
         t0 = time.perf_counter()
-        sid, centres = self._deferred.popleft()
+        sid, centres, entry = self._deferred.popleft()
         accepted = self._query(sid, centres, self.map.store.get(sid), index=False)
         if accepted:
             self._solve_for(sid, accepted)
-        self.timings["deferred_s"] += time.perf_counter() - t0  # a subtotal: its parts are in the other timings
+        spent = time.perf_counter() - t0
+        self.seconds[entry] += spent  # the submap's cost, wherever its query ran
+        self.timings["deferred_s"] += spent  # a subtotal: its parts are in the other timings
         return self.snapshot()
 
     def _solve_for(self, sid: int, accepted: list[LoopResult]) -> None:

@@ -9,7 +9,9 @@ front-end's interpreter without stalling it. :class:`BackendWorker` runs it in a
   never blocks. A back-end that falls more than ``WorkerConfig.catch_up_lag`` submaps behind catches up
   by adding the oldest waiting submaps to the map now and deferring their queries
   (:meth:`Backend.add_submap`, ``query=False``), which run when the worker is idle and at the end
-  (:meth:`Backend.query_deferred`): the front-end is never stalled, and no loop query is dropped;
+  (:meth:`Backend.query_deferred`). While deferred queries wait, later submaps' queries wait behind them, so
+  queries always run in submap order (each with its predecessor's matches and the loops before it): the
+  front-end is never stalled, and no loop query is dropped;
 * outbox: one :class:`PoseSnapshot` per processed submap, the final :class:`BackendResult`, or an error.
 
 :meth:`BackendWorker.latest` returns the newest snapshot without blocking; an error inside the worker
@@ -49,8 +51,9 @@ class WorkerConfig:
     mode: str = "process"  # "process" (own process, the front-end never waits on GTSAM) or "inline"
     catch_up_lag: int = 128  # when more submaps than this wait in the worker's inbox (which is unbounded: ids,
     # camera centres and the odometry edge; the points are on disk), the oldest are added to the map with
-    # their queries deferred (run when the worker is idle, and at the end) until it is back under half this
-    # lag: the front-end never waits, and no query is dropped. <= 0: never defer
+    # their queries deferred (run in order when the worker is idle, and at the end) until it is back under half
+    # this lag; later queries wait behind deferred ones: the front-end never waits, and no query is dropped.
+    # <= 0: never defer
     threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"

@@ -259,6 +259,26 @@ def test_register_loop_stays_within_what_odometry_allows(rng):
     assert not r3.accepted  # ground alone aligns anywhere: not evidence
 
 
+def test_a_guess_whose_structure_lies_beyond_the_icps_reach_is_not_refined(rng):
+    """ICP refines locally: from a guess that puts the query's ground on the match's ground but its buildings
+    beyond the ICP's first radius from the match's, no refinement passes the structure test, so that
+    guess is not refined at all (the estimate-free search is off here: the estimate is the only guess)."""
+    import dataclasses
+
+    from vggt_slam_pp.backend.registration import RegistrationConfig
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    world = _place(rng)
+    local = dataclasses.replace(RegistrationConfig(), search_peaks=0, height_cue=False)
+    near = register_loop(5, 1, world + rng.normal(0, 0.01, world.shape), world,
+                         make_sim3(1.0, np.eye(3), np.array([1.0, 0.5, 0.0])), np.eye(4), plane, 2.0, config=local)
+    assert near.accepted and near.guess == "odometry", near.reason
+    boxes = world[world[:, 2] > 0.3]  # the buildings 20 tiles away (off the match), the ground where it was
+    moved = np.r_[world[world[:, 2] <= 0.3], boxes + [40.0, 0.0, 0.0]]
+    far = register_loop(6, 1, moved, world, np.eye(4), np.eye(4), plane, 2.0, config=local)
+    assert not far.accepted and "within the ICP's reach" in far.reason, far.reason
+
+
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):
     from vggt_slam_pp.backend.search import free_space_agreement
 
@@ -737,6 +757,39 @@ def test_the_map_describes_a_moved_submap_again_only_when_it_moved_enough(tmp_pa
     assert m.refresh_layers({0, 1}) == 1 and m.stale  # submap 1 now, submap 0 waits
     assert m.refresh_layers(set()) == 1 and not m.stale
     assert m.placed_submaps() == [0] and m.is_placed(0)
+
+
+def test_layers_are_described_again_at_most_so_many_per_new_submap_on_average(tmp_path, rng):
+    """``relocate_per_submap``: a revisit's loops move hundreds of layers again and again; the map describes
+    again at most that many per submap added on average (most moved first), the rest as later submaps
+    arrive, so what relocation costs per submap stays flat."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.dem import DemConfig
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    store = SubmapStore(tmp_path / "s")
+    gallery = Gallery(HogEncoder(), CovisibilityConfig(dem=DemConfig(tile_size=2.0)))
+    m = Map(PoseGraph(GraphConfig()), store, gallery, relocate_min_shift_tiles=0.25, relocate_budget=3,
+            relocate_per_submap=1.0)
+    ground = np.c_[rng.uniform(-15, 15, (3000, 2)), rng.uniform(0, 0.05, 3000)]
+    boxes = np.c_[rng.uniform(-3, 3, (1500, 2)), rng.uniform(0, 2.0, 1500)]
+    store.put(0, np.r_[ground, boxes])
+    gallery.ensure_grid(store.get(0), np.array([[0.0, 0.0, 5.0]]), None)
+    for i in range(6):
+        store.put(i, store.get(0))
+        m.add_submap(i, None, store.get(i))
+        m.index_layer(i, gallery.describe(i, m.layer_points(i)))
+    for i in range(6):  # a solve moved all six, submap i by 3 + i tiles
+        m.graph.poses[i] = make_sim3(1.0, np.eye(3), np.array([6.0 + 2 * i, 0.0, 0.0]))
+    assert m.refresh_layers(set(range(6))) == 3 and m.stale  # the allowance saved up: one refresh's budget
+    assert m.refresh_layers(set()) == 0 and m.stale  # nothing left of it until a submap arrives
+    store.put(6, store.get(0))
+    m.add_submap(6, None, store.get(6))
+    m.index_layer(6, gallery.describe(6, m.layer_points(6)))
+    assert m.refresh_layers(set()) == 1 and m.stale  # one per new submap
+    moved = [i for i in range(6) if i not in m._stale]
+    assert moved == [2, 3, 4, 5]  # the most moved first
 
 
 def test_map_ply_written_as_a_stream_equals_the_map_built_at_once(loop_sequence, tmp_path):

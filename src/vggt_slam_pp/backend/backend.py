@@ -104,7 +104,7 @@ class Backend:
             encoder = load(ENCODERS, config.encoder, "encoder", RetrievalError).from_config(config.encoder_weights)
         gallery = Gallery(encoder, config.covisibility)
         self.map = Map(PoseGraph(config.graph), store, gallery, config.dem_max_points,
-                       config.relocate_min_shift_tiles, config.relocate_budget)
+                       config.relocate_min_shift_tiles, config.relocate_budget, config.relocate_per_submap)
         self.stage = CovisibilityStage(gallery)
         self.closer = LoopCloser(config, self.map)
         self.covisibility: list[CovisibilityEdge] = []

@@ -41,6 +41,8 @@ class BackendConfig:
     relocate_min_shift_tiles: float = 0.25
     relocate_budget: int = 64  # layers described again after one solve at most (most moved first; the rest
     # later): a long run's global solve must not stall the back-end; <= 0: all at once
+    relocate_per_submap: float = 4.0  # ... and at most this many per new submap on average (a revisit's loops
+    # move hundreds of layers again and again: its cost per submap stays flat); <= 0: no such limit
     cache_submaps: int = 8
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart

@@ -44,13 +44,16 @@ def subsample(points: np.ndarray, n: int) -> np.ndarray:
 
 class Map:
     def __init__(self, graph: PoseGraph, store: SubmapStore, gallery: Gallery, layer_max_points: int = 200_000,
-                 relocate_min_shift_tiles: float = 0.25, relocate_budget: int = 64) -> None:
+                 relocate_min_shift_tiles: float = 0.25, relocate_budget: int = 64,
+                 relocate_per_submap: float = 0.0) -> None:
         self.graph = graph
         self.store = store
         self.gallery = gallery
         self.layer_max_points = layer_max_points
         self.relocate_min_shift_tiles = relocate_min_shift_tiles
         self.relocate_budget = relocate_budget  # layers described again per refresh at most (<= 0: all)
+        self.relocate_per_submap = relocate_per_submap  # ... and on average per new submap (<= 0: no such limit)
+        self._relocate_tokens = float(max(relocate_budget, 0))  # what the average allows now (at most one refresh's)
         self.odometry_poses: dict[int, np.ndarray] = {}
         self.segment: dict[int, int] = {}  # submap id -> segment id (its first submap)
         self.placed: set[int] = set()  # segments in the map's frame
@@ -84,6 +87,8 @@ class Map:
             self.segment[sid] = self.segment[e.prev]
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
+        if self.relocate_per_submap > 0:
+            self._relocate_tokens = min(self._relocate_tokens + self.relocate_per_submap, self._budget_cap())
         if e is not None and e.degraded:
             self.degraded_edges.add(e.prev)
         if e is not None:
@@ -292,8 +297,10 @@ class Map:
     def refresh_layers(self, moved: set[int] | None = None) -> int:
         """After the graph moved submaps (``moved``: those it may have moved; None: any), rasterise and
         index again the layers that moved by at least ``relocate_min_shift_tiles`` since they were
-        rasterised: at most ``relocate_budget`` of them, those that moved most first; the others wait for
-        the next refresh (one that finds nothing moved catches up on them). Returns how many."""
+        rasterised: at most ``relocate_budget`` of them, and at most ``relocate_per_submap`` per submap added
+        on average (what a long run's revisits cost stays flat: every loop closure moves hundreds of layers),
+        those that moved most first; the others wait for the next refresh (one that finds nothing moved
+        catches up on them). Returns how many."""
         grid = self.gallery.grid
         thr = self.relocate_min_shift_tiles * (grid.tile_size if grid else 1.0)
         check = (set(self._layer_pose) if moved is None else moved | self._stale) & set(self._layer_pose)
@@ -309,6 +316,9 @@ class Map:
                 self._stale.discard(i)
         shifts.sort()
         budget = len(shifts) if self.relocate_budget <= 0 else self.relocate_budget
+        if self.relocate_per_submap > 0:
+            budget = min(budget, int(self._relocate_tokens))
+            self._relocate_tokens -= min(budget, len(shifts))
         for i in sorted(i for _, i in shifts[:budget]):  # in id order: the HNSW graph depends on insertion order
             self._relocate(i)
             self._stale.discard(i)
@@ -316,6 +326,9 @@ class Map:
         if shifts[:budget]:
             release_free_memory()
         return min(len(shifts), budget)
+
+    def _budget_cap(self) -> float:
+        return float(self.relocate_budget) if self.relocate_budget > 0 else np.inf
 
     @property
     def stale(self) -> bool:

@@ -267,6 +267,8 @@ class _Reused:
             self._items.move_to_end(key)
             return self._items[key]
         value = make()
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)  # shared by every caller that asks again
         self._items[key] = value
         while len(self._items) > self.size:
             self._items.popitem(last=False)

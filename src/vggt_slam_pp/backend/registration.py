@@ -193,17 +193,19 @@ def planar_ransac(src_uv: np.ndarray, dst_uv: np.ndarray, radius: float, iterati
     if n < 2:
         return best_T, best
     rng = np.random.default_rng(seed)
-    for _ in range(iterations):
-        a, b = rng.choice(n, 2, replace=False)
-        ds, dd = src_uv[b] - src_uv[a], dst_uv[b] - dst_uv[a]
-        if np.linalg.norm(ds) < 1e-9 or abs(np.linalg.norm(ds) - np.linalg.norm(dd)) > radius:
-            continue
-        th = np.arctan2(dd[1], dd[0]) - np.arctan2(ds[1], ds[0])
-        R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        t = dst_uv[a] - R @ src_uv[a]
-        inl = np.linalg.norm(src_uv @ R.T + t - dst_uv, axis=1) < radius
-        if inl.sum() > best.sum():
-            best, best_T = inl, np.block([[R, t[:, None]], [np.zeros((1, 2)), np.ones((1, 1))]])
+    a, b = np.array([rng.choice(n, 2, replace=False) for _ in range(iterations)]).reshape(-1, 2).T
+    # every hypothesis at once: the motion that takes pair (a, b) of src onto dst, if their lengths agree
+    ds, dd = src_uv[b] - src_uv[a], dst_uv[b] - dst_uv[a]
+    len_s, len_d = np.linalg.norm(ds, axis=1), np.linalg.norm(dd, axis=1)
+    usable = (len_s >= 1e-9) & (np.abs(len_s - len_d) <= radius)
+    th = np.arctan2(dd[:, 1], dd[:, 0]) - np.arctan2(ds[:, 1], ds[:, 0])
+    R = np.stack([np.stack([np.cos(th), -np.sin(th)], -1), np.stack([np.sin(th), np.cos(th)], -1)], 1)  # [I,2,2]
+    t = dst_uv[a] - np.einsum("kij,kj->ki", R, src_uv[a])
+    inliers = np.linalg.norm(np.einsum("kij,nj->kni", R, src_uv) + t[:, None] - dst_uv[None], axis=2) < radius
+    counts = np.where(usable, inliers.sum(1), 0)
+    k = int(np.argmax(counts))  # the first hypothesis with the most inliers
+    if counts[k] > 0:
+        best, best_T = inliers[k], np.block([[R[k], t[k][:, None]], [np.zeros((1, 2)), np.ones((1, 1))]])
     if best.sum() >= 2:  # least-squares refit on the inliers
         s, d = src_uv[best], dst_uv[best]
         ms, md = s.mean(0), d.mean(0)

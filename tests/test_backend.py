@@ -925,12 +925,34 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
     out = bench_memory(submaps=12, workdir=str(tmp_path), width=96, height=72)
     for key in ("peak_rss_mb_all", "backend_s_per_submap_first100", "backend_s_per_submap_last100",
                 "frontend_submit_wait_fraction", "backend_max_lag_submaps", "backend_queries_deferred",
-                "ate_reduction", "false_loops",
+                "ate_reduction", "false_loops", "loops_off_truth",
                 "rss_mb_at_50", "growth"):  # the new keys and the old ones
         assert key in out, key
+    assert isinstance(out["loops_off_truth"], list)
     assert out["peak_rss_mb_all"] >= out["peak_rss_mb"] > 0 and out["false_loops"] >= 0
     assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
+
+
+def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():
+    """``_wrong_loops(across=False)``: every accepted loop of one recording whose relative pose is off the
+    ground truth's by more than 5 deg or 5 m at the query's first camera (the footprint rule misses a right
+    loop between submaps that share little ground)."""
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.benchmarks import _wrong_loops
+
+    poses = np.stack([make_sim3(1.0, so3_exp(np.array([0, 0, 0.1 * k])), np.array([3.0 * k, 0, 0])) for k in range(6)])
+    source = SimpleNamespace(frame_ground_truth=lambda: (np.arange(6), SimpleNamespace(poses=poses)))
+    nodes = [{"id": i, "frames": [2 * i, 2 * i + 1]} for i in range(3)]
+    right = np.linalg.inv(poses[0]) @ poses[4]  # submap 2 (frames 4, 5) in submap 0's frame (frames 0, 1)
+    turned = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(10.0)])), np.zeros(3)) @ np.linalg.inv(poses[2]) @ poses[4]
+    graph = {"nodes": nodes, "edges": [{"kind": "odometry", "from": 0, "to": 1, "T": np.eye(4).tolist()},
+                                       {"kind": "loop", "from": 0, "to": 2, "T": right.tolist()},
+                                       {"kind": "loop", "from": 1, "to": 2, "T": turned.tolist()}]}
+    wrong = _wrong_loops(graph, 0, source, source, across=False)
+    assert [(q, m) for q, m, *_ in wrong] == [(2, 1)] and 9.5 < wrong[0][2] < 10.5
+    assert _wrong_loops(graph, 0, source, source) == []  # across a map and a recording: none here
 
 
 def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, rng):

@@ -935,7 +935,7 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
 
 
 def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():
-    """``_wrong_loops(across=False)``: every accepted loop of one recording whose relative pose is off the
+    """``_wrong_loops`` of one recording: every accepted loop of one recording whose relative pose is off the
     ground truth's by more than 5 deg or 5 m at the query's first camera (the footprint rule misses a right
     loop between submaps that share little ground)."""
     from types import SimpleNamespace
@@ -950,9 +950,9 @@ def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():
     graph = {"nodes": nodes, "edges": [{"kind": "odometry", "from": 0, "to": 1, "T": np.eye(4).tolist()},
                                        {"kind": "loop", "from": 0, "to": 2, "T": right.tolist()},
                                        {"kind": "loop", "from": 1, "to": 2, "T": turned.tolist()}]}
-    wrong = _wrong_loops(graph, 0, source, source, across=False)
+    wrong = _wrong_loops(graph, source)
     assert [(q, m) for q, m, *_ in wrong] == [(2, 1)] and 9.5 < wrong[0][2] < 10.5
-    assert _wrong_loops(graph, 0, source, source) == []  # across a map and a recording: none here
+    assert _wrong_loops(graph, source, source, n_map=0) == []  # across a map and a recording: none here
 
 
 def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, rng):

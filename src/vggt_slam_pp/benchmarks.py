@@ -162,17 +162,17 @@ def _nodes_ate(source, nodes: list[dict]) -> float:
     return float(np.sqrt(np.mean(np.sum((transform_points(T, a) - b) ** 2, axis=1))))
 
 
-def _wrong_loops(graph: dict, n_map: int, first, second, max_deg: float = 5.0, max_m: float = 5.0,
-                 across: bool = True) -> list:
+def _wrong_loops(graph: dict, first, second=None, n_map: int = 0, max_deg: float = 5.0, max_m: float = 5.0
+                 ) -> list:
     """Accepted loops between a recording (submaps ``>= n_map``, frames of ``second``) and its map (frames
-    of ``first``; ``across=False``: every loop, ``n_map`` = 0 and ``first`` = ``second`` for one recording)
-    whose relative pose is off the two submaps' ground-truth relative pose by more than ``max_deg`` or
-    ``max_m`` at the query's first camera: ``[(query, match, degrees, metres)]``."""
+    of ``first``), or (``second`` None) every accepted loop of one recording (frames of ``first``), whose
+    relative pose is off the two submaps' ground-truth relative pose by more than ``max_deg`` or ``max_m``
+    at the query's first camera: ``[(query, match, degrees, metres)]``."""
     from vggt_slam_pp.backend.registration import correction_size
     from vggt_slam_pp.geometry.lie import sim3_inverse
 
     truth = []
-    for source in (first, second):
+    for source in (first, second if second is not None else first):
         idx, gt = source.frame_ground_truth()
         truth.append(dict(zip(idx.tolist(), gt.poses, strict=True)))
     nodes = {n["id"]: n for n in graph["nodes"]}
@@ -183,7 +183,7 @@ def _wrong_loops(graph: dict, n_map: int, first, second, max_deg: float = 5.0, m
     wrong = []
     for e in graph["edges"]:
         m, q = e["from"], e["to"]
-        if e["kind"] != "loop" or (across and not q >= n_map > m):
+        if e["kind"] != "loop" or (second is not None and not q >= n_map > m):
             continue
         _, deg, metres = correction_size(pose(m) @ np.asarray(e["T"]) @ sim3_inverse(pose(q)), pose(q)[:3, 3])
         if deg > max_deg or metres > max_m:
@@ -624,7 +624,7 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
            "ate_second_pass_odometry": report.get("ate_rmse_odometry"),
            "targets": {"placed_fraction": 0.9, "false_placements": 0, "ate_ratio": 2.0}}
     out["ate_map_extended"] = _nodes_ate(first, nodes[:n_map])
-    out["wrong_loops_across"] = _wrong_loops(graph, n_map, first, second)
+    out["wrong_loops_across"] = _wrong_loops(graph, first, second, n_map)
     if keep.any():
         from vggt_slam_pp.eval.metrics import associate
 
@@ -696,7 +696,7 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
             "ate_reduction": report.get("ate_reduction"), "false_loops": len(false), "false_pairs": false,
             # beside the footprint rule: loops whose relative pose is off the ground truth's (a loop between two
             # submaps that share little ground can still be right, and one that shares much can be wrong)
-            "loops_off_truth": _wrong_loops(graph, 0, source, source, across=False)}
+            "loops_off_truth": _wrong_loops(graph, source)}
 
 
 # --------------------------------------------------------------------------------------- front-end

@@ -88,7 +88,8 @@ class Map:
         self.graph.add_node(sid, T)
         self.odometry_poses[sid] = T_odo
         if self.relocate_per_submap > 0:
-            self._relocate_tokens = min(self._relocate_tokens + self.relocate_per_submap, self._budget_cap())
+            cap = self.relocate_budget if self.relocate_budget > 0 else np.inf  # at most one refresh's budget
+            self._relocate_tokens = min(self._relocate_tokens + self.relocate_per_submap, cap)
         if e is not None and e.degraded:
             self.degraded_edges.add(e.prev)
         if e is not None:
@@ -315,20 +316,17 @@ class Map:
             else:
                 self._stale.discard(i)
         shifts.sort()
-        budget = len(shifts) if self.relocate_budget <= 0 else self.relocate_budget
+        budget = len(shifts) if self.relocate_budget <= 0 else min(len(shifts), self.relocate_budget)
         if self.relocate_per_submap > 0:
             budget = min(budget, int(self._relocate_tokens))
-            self._relocate_tokens -= min(budget, len(shifts))
+            self._relocate_tokens -= budget
         for i in sorted(i for _, i in shifts[:budget]):  # in id order: the HNSW graph depends on insertion order
             self._relocate(i)
             self._stale.discard(i)
         self._stale.update(i for _, i in shifts[budget:])
         if shifts[:budget]:
             release_free_memory()
-        return min(len(shifts), budget)
-
-    def _budget_cap(self) -> float:
-        return float(self.relocate_budget) if self.relocate_budget > 0 else np.inf
+        return budget
 
     @property
     def stale(self) -> bool:

@@ -179,6 +179,36 @@ def test_gnc_closes_a_large_drift_and_switches_a_wrong_loop_off():
         unknown.optimize()
 
 
+def test_the_final_solve_keeps_true_loops_of_a_large_drift_that_cauchy_would_prune(tmp_path):
+    """The loops are Cauchy-weighted; at the end, a revisit whose drift is larger than the odometry sigmas say
+    sits in Cauchy's flat tail and its true loops were pruned (bench loops, realistic profile, KITTI 00: a
+    consistent pair 1 deg / 1 m from the truth). When the end's solve would prune loops, GNC (``final_kernel``)
+    weighs them again: the true loops stay and close the drift, the wrong one leaves the graph and is reported
+    rejected."""
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.registration import LoopResult
+
+    def finished(final_kernel):
+        graph, gt = _large_drift_graph("cauchy", bad_loop=True)
+        graph.config = GraphConfig(**{**graph.config.__dict__, "final_kernel": final_kernel})
+        backend = Backend(BackendConfig(graph=graph.config), SubmapStore(tmp_path / str(final_kernel)))
+        backend.map.graph = graph
+        backend.closer.loops = [LoopResult(e.j, e.i, True, "accepted", e.T_ij, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
+                                for e in graph.edges if e.kind == "loop"]
+        before = _err(graph, gt)
+        result = backend.finish()
+        kept = [(e.j, e.i) for e in result.edges if e.kind == "loop"]
+        return before, _err(graph, gt), kept, result
+
+    n = len(_square())
+    before, after, kept, result = finished("gnc")
+    assert kept == [(n - 1, 0), (n - 1, 1)] and after < 0.3 * before  # the two true loops, the map closed
+    assert [r.accepted for r in result.loops] == [True, True, False]
+    assert result.loops[2].reason.startswith("rejected by the pose graph")
+    _, after_cauchy, kept_cauchy, _ = finished(None)  # Cauchy to the end: the true loops in its tail, pruned
+    assert kept_cauchy == [] and after_cauchy > 0.7 * before
+
+
 def test_windowed_optimisation_holds_the_rest_fixed():
     g, _ = _graph_with_drift()
     fixed = {i: g.poses[i].copy() for i in range(3, 9)}

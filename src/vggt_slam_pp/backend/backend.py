@@ -237,10 +237,11 @@ class Backend:
             window.update(range(n - k, n + k + 1))
         return {n for n in window if n in self.map.graph.poses}
 
-    def _optimize(self, window: set[int] | None, refresh: bool = True) -> None:
-        """Solve the graph (over ``window``, or globally) and (``refresh``) describe moved layers again."""
+    def _optimize(self, window: set[int] | None, refresh: bool = True, kernel: str | None = None) -> None:
+        """Solve the graph (over ``window``, or globally; ``kernel``: the loops', default the configured one) and
+        (``refresh``) describe moved layers again."""
         t0 = time.perf_counter()
-        moved = set(self.map.graph.optimize(window))
+        moved = set(self.map.graph.optimize(window, kernel))
         if window is None and self.map.prior_poses:  # a map extended by a recording stays in its frame
             if not np.allclose(self.map.keep_prior_frame(), np.eye(4)):
                 moved = set(self.map.graph.poses)  # the held nodes moved with the frame too
@@ -267,17 +268,26 @@ class Backend:
         while self._deferred:
             self.query_deferred()
         graph = self.map.graph
-        if (graph.config.height_factors and graph.heights and graph.scale_noise() is not None) or any(
-                e.kind == "loop" for e in graph.edges):
+        kernel = graph.config.robust_kernel
+        loops = any(e.kind == "loop" for e in graph.edges)
+        if (graph.config.height_factors and graph.heights and graph.scale_noise() is not None) or loops:
             # no query follows: the layers are not described again
             self._optimize(None, refresh=False)
-            if self.closer.prune(self.config.min_loop_weight):
-                self._optimize(None, refresh=False)  # without any loop left: odometry and heights alone
+            final = graph.config.final_kernel
+            if loops and final and final != kernel and min(graph.loop_weights()) < self.config.min_loop_weight:
+                # loops the kernel would prune may be true ones left in its flat tail (a drift larger than the
+                # odometry sigmas say): the final kernel weighs them again from here (GraphConfig.final_kernel)
+                kernel = final
+                self._optimize(None, refresh=False, kernel=kernel)
+            if self.closer.prune(self.config.min_loop_weight, kernel):
+                if not any(e.kind == "loop" for e in graph.edges):
+                    kernel = graph.config.robust_kernel  # odometry and heights alone, as without loops
+                self._optimize(None, refresh=False, kernel=kernel)  # without those loops
         grid = self.map.gallery.grid
         return BackendResult(
             poses={i: T.copy() for i, T in graph.poses.items()},
             odometry_poses=dict(self.map.odometry_poses), edges=list(graph.edges),
-            loop_weights=[float(w) for w in graph.loop_weights()], covisibility=list(self.covisibility),
+            loop_weights=[float(w) for w in graph.loop_weights(kernel)], covisibility=list(self.covisibility),
             loops=list(self.closer.loops), seconds_per_submap=list(self.seconds),
             timings=dict(self.timings), plane=grid.plane.to_dict() if grid else None,
             tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,

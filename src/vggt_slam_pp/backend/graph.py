@@ -9,7 +9,10 @@ GTSAM's ``Similarity3(R, t_g, s)`` maps ``p -> s (R p + t_g)``, so ``t_g = t / s
 is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below.
 
 :meth:`PoseGraph.optimize` solves either every node (global) or a window of nodes with the others held
-fixed (their factors become priors of negligible sigma): the cheap per-submap update.
+fixed (their factors become priors of negligible sigma): the cheap per-submap update. When the back-end's
+last global solve would prune loops, they are weighed again with ``GraphConfig.final_kernel`` (GNC): a
+revisit whose drift is larger than the odometry sigmas say starts in Cauchy's flat tail, where it neither
+moves the map nor keeps its weight.
 
 Height factors (:meth:`PoseGraph.add_height`): a camera carried at one height above its ground (a car,
 a walker, a robot) measures each submap's scale on its own: ``s_i h_i = H``, where ``h_i`` is the
@@ -42,6 +45,10 @@ class GraphConfig:
     kernel_width: float = 0.5  # in whitened units: our sigmas are ~5x the actual spread (whitened residuals
     # ~0.2-0.5), so 0.5 is about the typical residual; 1.0 left wrong loops almost unweighted (docs/backend.md)
     continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
+    final_kernel: str | None = "gnc"  # when the end's global solve (robust_kernel) leaves loops it would prune, they
+    # are weighed again with this one from there: GNC (PoseGraph._solve_gnc) closes a revisit whose drift is larger
+    # than the odometry sigmas say, which Cauchy leaves in its flat tail (docs/backend.md, "loop acceptance");
+    # None: robust_kernel alone
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
     odometry_scale_sigma: float = 0.01  # log-scale
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
@@ -237,8 +244,9 @@ class PoseGraph:
         est = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
         return gtsam.noiseModel.Robust.Create(est[kernel].Create(k), base)
 
-    def optimize(self, window: set[int] | None = None) -> dict[int, np.ndarray]:
-        """Optimise the nodes in ``window`` (all when None), holding the others fixed.
+    def optimize(self, window: set[int] | None = None, kernel: str | None = None) -> dict[int, np.ndarray]:
+        """Optimise the nodes in ``window`` (all when None), holding the others fixed, with the loops'
+        ``kernel`` (default: ``GraphConfig.robust_kernel``).
 
         Returns the new poses of the optimised nodes (also stored in :attr:`poses`).
         """
@@ -247,7 +255,7 @@ class PoseGraph:
         t0 = time.perf_counter()
         if not self.poses:
             return {}
-        kernel = self.config.robust_kernel
+        kernel = kernel or self.config.robust_kernel
         if kernel not in ("cauchy", "huber", "none", "gnc"):
             raise BackendError(f"unknown robust kernel {kernel!r}; use gnc, cauchy, huber or none")
         # Cauchy is not convex: a true loop closing a large drift starts far out in its tail and is
@@ -366,10 +374,11 @@ class PoseGraph:
         opt.setInlierCostThresholdsAtProbability(self.config.gnc_inlier_probability)
         return opt.optimize()
 
-    def loop_weights(self) -> list[float]:
-        """Robust weight (0..1) of every loop edge at the current poses, in edge order (for reports)."""
+    def loop_weights(self, kernel: str | None = None) -> list[float]:
+        """Robust weight (0..1) of every loop edge at the current poses under ``kernel`` (default:
+        ``GraphConfig.robust_kernel``), in edge order (for reports)."""
         out = []
-        k, kernel = self.config.kernel_width, self.config.robust_kernel
+        k, kernel = self.config.kernel_width, kernel or self.config.robust_kernel
         for e in self.edges:
             if e.kind != "loop":
                 continue

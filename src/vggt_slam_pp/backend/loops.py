@@ -369,12 +369,12 @@ class LoopCloser:
                     heapq.heappush(heap, (cost + add, j))
         return best, state
 
-    def prune(self, min_weight: float) -> int:
+    def prune(self, min_weight: float, kernel: str | None = None) -> int:
         """Loops the robust pose graph switched off (weight below ``min_weight`` after a global solve:
         odometry and the other loops cannot explain them) leave the graph and are reported as rejected.
         Returns how many left."""
         g = self.map.graph
-        weights = g.loop_weights()
+        weights = g.loop_weights(kernel)
         loops = [e for e in g.edges if e.kind == "loop"]
         out = {(e.j, e.i): w for e, w in zip(loops, weights, strict=True) if w < min_weight}
         if not out:

@@ -278,6 +278,8 @@ class Backend:
                 # loops the kernel would prune may be true ones left in its flat tail (a drift larger than the
                 # odometry sigmas say): the final kernel weighs them again from here (GraphConfig.final_kernel)
                 kernel = final
+                log.info("the final solve would prune %d loop(s): every loop weighed again with %s",
+                         sum(w < self.config.min_loop_weight for w in graph.loop_weights()), final)
                 self._optimize(None, refresh=False, kernel=kernel)
             if self.closer.prune(self.config.min_loop_weight, kernel):
                 if not any(e.kind == "loop" for e in graph.edges):

@@ -209,6 +209,26 @@ def test_the_final_solve_keeps_true_loops_of_a_large_drift_that_cauchy_would_pru
     assert kept_cauchy == [] and after_cauchy > 0.7 * before
 
 
+def test_the_final_solve_keeps_cauchy_when_it_prunes_only_a_few_loops(tmp_path, caplog):
+    """One wrong loop among true ones that Cauchy follows: the kernel is doing its job, GNC is not asked."""
+    import logging
+
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.registration import LoopResult
+
+    graph, gt = _graph_with_drift(bad_loop=True)
+    n = len(gt)
+    graph.add_edge(Edge(1, n - 1, sim3_inverse(gt[1]) @ gt[n - 1], np.r_[[0.01] * 3, [0.05] * 3, 0.01], "loop"))
+    backend = Backend(BackendConfig(graph=graph.config), SubmapStore(tmp_path / "s"))
+    backend.map.graph = graph
+    backend.closer.loops = [LoopResult(e.j, e.i, True, "accepted", e.T_ij, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
+                            for e in graph.edges if e.kind == "loop"]
+    with caplog.at_level(logging.INFO, logger="vggt_slam_pp.backend.backend"):
+        result = backend.finish()
+    assert [r.accepted for r in result.loops] == [True, False, True]  # the wrong one pruned by Cauchy itself
+    assert "weighed again" not in caplog.text
+
+
 def test_windowed_optimisation_holds_the_rest_fixed():
     g, _ = _graph_with_drift()
     fixed = {i: g.poses[i].copy() for i in range(3, 9)}

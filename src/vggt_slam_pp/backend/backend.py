@@ -274,12 +274,14 @@ class Backend:
             # no query follows: the layers are not described again
             self._optimize(None, refresh=False)
             final = graph.config.final_kernel
-            if loops and final and final != kernel and min(graph.loop_weights()) < self.config.min_loop_weight:
-                # loops the kernel would prune may be true ones left in its flat tail (a drift larger than the
-                # odometry sigmas say): the final kernel weighs them again from here (GraphConfig.final_kernel)
+            weights = graph.loop_weights() if loops else []
+            out = sum(w < self.config.min_loop_weight for w in weights)
+            if final and final != kernel and out and out >= 0.5 * len(weights):
+                # the kernel would prune most loops: the solve did not go to them, they sit in its flat tail (a
+                # drift larger than the odometry sigmas say); the final kernel weighs them again from here
+                # (GraphConfig.final_kernel). A few pruned among many kept: the kernel doing its job
                 kernel = final
-                log.info("the final solve would prune %d loop(s): every loop weighed again with %s",
-                         sum(w < self.config.min_loop_weight for w in graph.loop_weights()), final)
+                log.info("the final solve would prune %d of %d loops: weighed again with %s", out, len(weights), final)
                 self._optimize(None, refresh=False, kernel=kernel)
             if self.closer.prune(self.config.min_loop_weight, kernel):
                 if not any(e.kind == "loop" for e in graph.edges):

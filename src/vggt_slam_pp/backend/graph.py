@@ -10,7 +10,7 @@ is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below
 
 :meth:`PoseGraph.optimize` solves either every node (global) or a window of nodes with the others held
 fixed (their factors become priors of negligible sigma): the cheap per-submap update. When the back-end's
-last global solve would prune loops, they are weighed again with ``GraphConfig.final_kernel`` (GNC): a
+last global solve would prune most loops, they are weighed again with ``GraphConfig.final_kernel`` (GNC): a
 revisit whose drift is larger than the odometry sigmas say starts in Cauchy's flat tail, where it neither
 moves the map nor keeps its weight.
 
@@ -45,10 +45,10 @@ class GraphConfig:
     kernel_width: float = 0.5  # in whitened units: our sigmas are ~5x the actual spread (whitened residuals
     # ~0.2-0.5), so 0.5 is about the typical residual; 1.0 left wrong loops almost unweighted (docs/backend.md)
     continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
-    final_kernel: str | None = "gnc"  # when the end's global solve (robust_kernel) leaves loops it would prune, they
-    # are weighed again with this one from there: GNC (PoseGraph._solve_gnc) closes a revisit whose drift is larger
-    # than the odometry sigmas say, which Cauchy leaves in its flat tail (docs/backend.md, "loop acceptance");
-    # None: robust_kernel alone
+    final_kernel: str | None = "gnc"  # when the end's global solve (robust_kernel) would prune at least half of the
+    # loops, they are weighed again with this one from there: GNC (PoseGraph._solve_gnc) closes a revisit whose
+    # drift is larger than the odometry sigmas say, which Cauchy leaves in its flat tail (docs/backend.md, "loop
+    # acceptance"); None: robust_kernel alone
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
     odometry_scale_sigma: float = 0.01  # log-scale
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)

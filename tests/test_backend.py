@@ -179,24 +179,29 @@ def test_gnc_closes_a_large_drift_and_switches_a_wrong_loop_off():
         unknown.optimize()
 
 
+def _finish(graph: PoseGraph, folder):
+    """A back-end whose graph is ``graph`` and whose every loop edge is an accepted loop, finished."""
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.registration import LoopResult
+
+    backend = Backend(BackendConfig(graph=graph.config), SubmapStore(folder))
+    backend.map.graph = graph
+    backend.closer.loops = [LoopResult(e.j, e.i, True, "accepted", e.T_ij, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
+                            for e in graph.edges if e.kind == "loop"]
+    return backend.finish()
+
+
 def test_the_final_solve_keeps_true_loops_of_a_large_drift_that_cauchy_would_prune(tmp_path):
     """The loops are Cauchy-weighted; at the end, a revisit whose drift is larger than the odometry sigmas say
     sits in Cauchy's flat tail and its true loops were pruned (bench loops, realistic profile, KITTI 00: a
     consistent pair 1 deg / 1 m from the truth). When the end's solve would prune loops, GNC (``final_kernel``)
     weighs them again: the true loops stay and close the drift, the wrong one leaves the graph and is reported
     rejected."""
-    from vggt_slam_pp.backend.backend import Backend, BackendConfig
-    from vggt_slam_pp.backend.registration import LoopResult
-
     def finished(final_kernel):
         graph, gt = _large_drift_graph("cauchy", bad_loop=True)
         graph.config = GraphConfig(**{**graph.config.__dict__, "final_kernel": final_kernel})
-        backend = Backend(BackendConfig(graph=graph.config), SubmapStore(tmp_path / str(final_kernel)))
-        backend.map.graph = graph
-        backend.closer.loops = [LoopResult(e.j, e.i, True, "accepted", e.T_ij, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
-                                for e in graph.edges if e.kind == "loop"]
         before = _err(graph, gt)
-        result = backend.finish()
+        result = _finish(graph, tmp_path / str(final_kernel))
         kept = [(e.j, e.i) for e in result.edges if e.kind == "loop"]
         return before, _err(graph, gt), kept, result
 
@@ -213,18 +218,11 @@ def test_the_final_solve_keeps_cauchy_when_it_prunes_only_a_few_loops(tmp_path, 
     """One wrong loop among true ones that Cauchy follows: the kernel is doing its job, GNC is not asked."""
     import logging
 
-    from vggt_slam_pp.backend.backend import Backend, BackendConfig
-    from vggt_slam_pp.backend.registration import LoopResult
-
     graph, gt = _graph_with_drift(bad_loop=True)
     n = len(gt)
     graph.add_edge(Edge(1, n - 1, sim3_inverse(gt[1]) @ gt[n - 1], np.r_[[0.01] * 3, [0.05] * 3, 0.01], "loop"))
-    backend = Backend(BackendConfig(graph=graph.config), SubmapStore(tmp_path / "s"))
-    backend.map.graph = graph
-    backend.closer.loops = [LoopResult(e.j, e.i, True, "accepted", e.T_ij, None, 0.5, 0.5, 0.1, 0, 0.0, "search_1")
-                            for e in graph.edges if e.kind == "loop"]
     with caplog.at_level(logging.INFO, logger="vggt_slam_pp.backend.backend"):
-        result = backend.finish()
+        result = _finish(graph, tmp_path / "s")
     assert [r.accepted for r in result.loops] == [True, False, True]  # the wrong one pruned by Cauchy itself
     assert "weighed again" not in caplog.text
 

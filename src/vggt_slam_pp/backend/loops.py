@@ -370,8 +370,9 @@ class LoopCloser:
         return best, state
 
     def prune(self, min_weight: float, kernel: str | None = None) -> int:
-        """Loops the robust pose graph switched off (weight below ``min_weight`` after a global solve:
-        odometry and the other loops cannot explain them) leave the graph and are reported as rejected.
+        """Loops the robust pose graph switched off (weight below ``min_weight`` under ``kernel``, default the
+        configured one, after a global solve: odometry and the other loops cannot explain them) leave the graph
+        and are reported as rejected.
         Returns how many left."""
         g = self.map.graph
         weights = g.loop_weights(kernel)

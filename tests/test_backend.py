@@ -680,7 +680,7 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
 def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_degraded(tmp_path):
     """An edge a sparse backbone measured from the shared keyframes' cameras is 0.05-0.45 % of the step
     off (castle walk, EuRoC), not the 2 % a dense backbone's point alignment is given; a degraded one keeps
-    the wide sigma."""
+    the wide sigma; a joint link's rotation and scale sigma are its own relative residual."""
     from vggt_slam_pp.backend.map import Map
     from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
     from vggt_slam_pp.frontend.types import OdometryEdge
@@ -694,6 +694,14 @@ def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_d
     trans = {e.j: e.sigmas[3] for e in m.graph.edges}
     assert np.isclose(trans[1], 0.02 * 10 + 0.01) and np.isclose(trans[2], 0.002 * 10 + 0.01)
     assert np.isclose(trans[3], 100 * trans[1])  # degraded: no measured link, the wide sigma inflated
+    # a joint link measures its own relative uncertainty: its rotation and log-scale sigma, floored at 0.2 %
+    for i, relative in ((4, 0.006), (5, 0.0005)):
+        m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "joint", relative_residual=relative),
+                     np.zeros((0, 3)))
+    sig = {e.j: e.sigmas for e in m.graph.edges}
+    assert np.allclose(sig[4][[0, 1, 2, 6]], 0.006) and np.allclose(sig[5][[0, 1, 2, 6]], 0.002)
+    assert np.isclose(sig[4][3], 0.002 * 10 + 0.01)  # its translation as any edge from the cameras
+    assert np.allclose(sig[2][[0, 1, 2, 6]], 0.01)  # the others: the configured sigmas
 
 
 def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_relative_scale(tmp_path):

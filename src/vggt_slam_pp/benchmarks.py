@@ -796,12 +796,12 @@ def _median_or_none(values: list) -> float | None:
 
 
 def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequences: list[str] | None = None,
-                   rendered_frames: int = 800, deterministic: bool = True,
+                   rendered_frames: int = 800, deterministic: bool = True, link: str = "shared",
                    progress=None) -> dict:
     """The ``colmap`` front-end on every real sequence under ``data`` and a rendered one, each run
     ``runs`` times with seeds 0..runs-1 (no back-end): per sequence the median, worst and spread of the
     odometry ATE (Sim(3)-aligned keyframes, metres), degraded edges, registered keyframes and frames/s.
-    Sequences whose data is missing are reported as skipped."""
+    Sequences whose data is missing are reported as skipped. ``link``: ``BackboneConfig.colmap_link``."""
     from vggt_slam_pp.frontend.frontend import FrontendConfig
     from vggt_slam_pp.frontend.keyframes import KeyframeConfig
     from vggt_slam_pp.io import open_source
@@ -809,7 +809,7 @@ def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequenc
 
     data, workdir = Path(data), Path(workdir)
     wanted = sequences or list(FRONTEND_SEQUENCES)
-    out: dict = {"runs": runs, "backbone": "colmap", "deterministic": deterministic, "sequences": []}
+    out: dict = {"runs": runs, "backbone": "colmap", "deterministic": deterministic, "link": link, "sequences": []}
     for seq in _frontend_sequences(data, workdir):
         if seq["name"] not in wanted:
             continue
@@ -830,7 +830,7 @@ def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequenc
             if progress:
                 progress(f"{seq['name']} seed {seed}")
             config = RunConfig(
-                backbone=BackboneConfig(name="colmap", seed=seed, deterministic=deterministic),
+                backbone=BackboneConfig(name="colmap", seed=seed, deterministic=deterministic, colmap_link=link),
                 frontend=FrontendConfig(keyframes=KeyframeConfig(tau_disparity=seq["tau"]),
                                         submap_size=seq["submap_size"]),
                 calibrated=seq["calibrated"], backend=False)

@@ -53,7 +53,11 @@ class GraphConfig:
     odometry_scale_sigma: float = 0.01  # log-scale
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
     odometry_trans_sigma_rel_cameras: float = 0.002  # the same for an edge from the shared keyframes' cameras
-    # (a sparse backbone, "pose_scale" / "anchored"), measured 0.05-0.45 % of the step on the castle walk and EuRoC
+    # (a sparse backbone, "pose_scale" / "joint" / "anchored"), measured 0.05-0.45 % of the step on the castle walk and
+    # EuRoC
+    odometry_relative_sigma_floor: float = 0.002  # an edge that measures its own relative uncertainty (COLMAP's
+    # joint link: the cameras' placement residual over their spread) has that as its rotation (rad) and log-scale
+    # sigma, at least this much
     degraded_inflation: float = 100.0
     loop_rot_sigma: float = 0.02
     loop_scale_sigma: float = 0.02
@@ -144,17 +148,22 @@ class PoseGraph:
         self.poses[i] = np.asarray(T_world_submap, float).copy()
 
     def odometry_sigmas(self, T_ij: np.ndarray, residual: float, degraded: bool = False,
-                        from_cameras: bool = False) -> np.ndarray:
+                        from_cameras: bool = False, relative: float = float("nan")) -> np.ndarray:
         """Sigmas [7] of an odometry edge ``T_ij`` with its fit ``residual`` (i's units): translation
         ``odometry_trans_sigma_rel`` of the step plus the residual; ``from_cameras``: an edge measured from
-        the shared keyframes' cameras (a sparse backbone's), ``odometry_trans_sigma_rel_cameras`` of it."""
+        the shared keyframes' cameras (a sparse backbone's), ``odometry_trans_sigma_rel_cameras`` of it.
+        ``relative``: the edge's own relative uncertainty, when it measures one (rotation and log-scale sigma,
+        at least ``odometry_relative_sigma_floor``; otherwise ``odometry_rot_sigma`` / ``odometry_scale_sigma``)."""
         c = self.config
         s, _, t = decompose_sim3(T_ij)
         step = float(np.linalg.norm(t))
         residual = float(residual) if np.isfinite(residual) else max(step, 1.0)  # unknown: as large as the step
         rel = c.odometry_trans_sigma_rel_cameras if from_cameras else c.odometry_trans_sigma_rel
         trans = rel * step + max(residual, 1e-4 * max(step, 1e-3), 1e-9)
-        sig = np.r_[[c.odometry_rot_sigma] * 3, [trans / max(float(s), 1e-9)] * 3, c.odometry_scale_sigma]
+        rot, scale = c.odometry_rot_sigma, c.odometry_scale_sigma
+        if np.isfinite(relative):
+            rot = scale = max(float(relative), c.odometry_relative_sigma_floor)
+        sig = np.r_[[rot] * 3, [trans / max(float(s), 1e-9)] * 3, scale]
         return sig * (c.degraded_inflation if degraded else 1.0)
 
     def add_height(self, i: int, height: float, group: int) -> None:

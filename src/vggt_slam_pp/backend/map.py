@@ -95,7 +95,8 @@ class Map:
         if e is not None:
             self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
                                      self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded,
-                                                               e.method in ("pose_scale", "anchored") and not e.degraded),
+                                                               e.method in ("pose_scale", "joint", "anchored") and not e.degraded,
+                                                               e.relative_residual),
                                      "odometry",
                                      {"residual": e.residual, "degraded": e.degraded}))
         if len(points):

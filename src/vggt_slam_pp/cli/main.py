@@ -159,6 +159,7 @@ _RUN_FLAGS = {
     "backbone": ("backbone.name", None), "weights": ("backbone.weights", None), "device": ("backbone.device", None),
     "replay": ("backbone.replay_dir", str), "noise": ("backbone.noise", None), "seed": ("backbone.seed", None),
     "matcher": ("backbone.colmap_matcher", None), "mapper": ("backbone.colmap_mapper", None),
+    "link": ("backbone.colmap_link", None),
     "deterministic": ("backbone.deterministic", None),
     "image_loops": ("backbone.image_features", None),
     "tau": ("frontend.keyframes.tau_disparity", None), "submap_size": ("frontend.submap_size", None),
@@ -373,7 +374,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         data = args.data or _default_data()
         result = benchmarks.bench_frontend(data, workdir=str(args.workdir or "runs/bench_frontend"), runs=args.runs,
                                            sequences=args.sequence or None, deterministic=args.deterministic,
-                                           progress=lambda name: print(f"{name} ...", file=sys.stderr))
+                                           link=args.link, progress=lambda name: print(f"{name} ...", file=sys.stderr))
         summary = _frontend_table(result)
     elif args.suite == "loops" and args.backbone == "colmap":
         result = benchmarks.bench_loops_colmap(workdir=str(args.workdir or "runs/bench_loops_colmap"), seed=args.seed,
@@ -628,6 +629,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="colmap: reconstruct each submap on its own with COLMAP's global mapper and link it by its "
                         "shared keyframes (default), or register it into the previous submap's shared keyframes "
                         "with the incremental mapper")
+    r.add_argument("--link", choices=("shared", "joint"),
+                   help="colmap, global mapper: link each submap to the previous one by their shared keyframes "
+                        "(shared, default) or by one bundle adjustment of both, each placed by all its cameras "
+                        "(joint: better on real handheld and drone sequences, worse on forward driving)")
     r.add_argument("--submap-size", type=int,
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
     r.add_argument("--overlap", type=int,
@@ -659,6 +664,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "rendered")
     b.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help="frontend: colmap on one thread (default; bit-identical runs per seed)")
+    b.add_argument("--link", choices=("shared", "joint"), default="shared",
+                   help="frontend: how consecutive colmap submaps are linked (run --link)")
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops, registration: frames per synthetic sequence")
     b.add_argument("--trajectory", type=Path, action="append", default=[],

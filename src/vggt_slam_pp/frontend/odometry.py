@@ -7,6 +7,9 @@ frames registered (``valid``) in both submaps are used.
 
 * ``points`` (dense backbones): robust Sim(3) (RANSAC over Umeyama + refit) on the corresponding
   points of every shared frame, ``T_prev_curr`` maps current-submap points into the previous submap.
+* ``joint`` (COLMAP submaps, global mapper): the backbone joined the two reconstructions in one bundle
+  adjustment and placed each by all its cameras (``info["joint_link"]``,
+  :mod:`vggt_slam_pp.frontend.backbones.colmap_joint`); used when present.
 * ``pose_scale`` (sparse backbones, as measured on COLMAP submaps): rotation and translation from the
   shared frames' own poses in both submaps (rotations averaged, camera centres aligned), scale from the
   median ratio of the corresponding points' distances to their camera, pooled over the shared frames
@@ -110,6 +113,10 @@ def _fit(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int, method
             all(int(prev.frame_indices[f.prev_pos]) in anchor for f in shared):
         return _anchored(prev_id, prev, curr_id, curr, shared, n)
     if method == "pose_scale":
+        link = curr.info.get("joint_link")
+        if link and link["prev_frames"] == sorted(int(f) for f in prev.frame_indices):
+            return _joint(prev_id, prev, curr_id, curr, shared, n, np.asarray(link["T_prev_curr"], np.float64),
+                          float(link.get("residual", np.nan)), float(link.get("relative_residual", np.nan)))
         return _pose_scale(prev_id, prev, curr_id, curr, shared, n)
     raise GeometryError(f"unknown odometry method {method!r}")
 
@@ -191,6 +198,27 @@ def _pose_scale(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int)
     inl = np.abs(np.log(ratios / s)) < 0.05
     resid = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan")
     return OdometryEdge(prev_id, curr_id, T, resid, float(inl.mean()), n, "pose_scale", shared_frames=len(Rs))
+
+
+def _joint(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int, T: np.ndarray,
+           residual: float, relative: float) -> OdometryEdge:
+    """The backbone linked the two submaps by one bundle adjustment of both (``info["joint_link"]``,
+    frontend/backbones/colmap_joint.py). Residual: the link's own, how far the two submaps' cameras are from
+    the joint model once placed (previous submap units); without it, the shared points' RMS residual under
+    ``T``; ``relative``: that residual over the cameras' spread. Inlier ratio: the shared points' depth ratios
+    within 5 % of its scale."""
+    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    p_prev = np.concatenate([f.p_prev for f in shared])
+    p_curr = np.concatenate([f.p_curr for f in shared])
+    ratios = np.concatenate([np.linalg.norm(transform_points(prev.T_cam_submap[f.prev_pos], f.p_prev), axis=1) /
+                             np.maximum(np.linalg.norm(transform_points(curr.T_cam_submap[f.curr_pos], f.p_curr),
+                                                       axis=1), 1e-12) for f in shared])
+    inl = np.abs(np.log(np.maximum(ratios, 1e-12) / s)) < 0.05
+    if not np.isfinite(residual):
+        r = np.linalg.norm(transform_points(T, p_curr) - p_prev, axis=1)
+        residual = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan")
+    return OdometryEdge(prev_id, curr_id, T, residual, float(inl.mean()), n, "joint", shared_frames=len(shared),
+                        relative_residual=relative)
 
 
 def _anchored(prev_id, prev, curr_id, curr, shared: list[SharedFrame], n: int) -> OdometryEdge:

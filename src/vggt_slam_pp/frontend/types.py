@@ -117,7 +117,9 @@ class OdometryEdge:
     residual: float  # RMS 3-D residual of the inliers, in prev-submap units
     inlier_ratio: float
     num_correspondences: int
-    method: str  # "points", "pose_scale" or "anchored", or "extrapolated" when it had to degrade
+    method: str  # "points", "pose_scale", "joint" or "anchored", or "extrapolated" when it had to degrade
     degraded: bool = False  # no measured link: the back-end gives the edge a large uncertainty
     cause: str = ""  # why it degraded, or how it was recovered ("" for a plain edge)
     shared_frames: int = 1  # keyframes reconstructed in both submaps that the estimate used
+    relative_residual: float = float("nan")  # "joint": the cameras' placement residual over their spread (the
+    # back-end's rotation and log-scale sigma of the edge); NaN for the other methods

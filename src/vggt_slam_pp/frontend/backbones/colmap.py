@@ -27,8 +27,10 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
 The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there, after scaling it so that
 the camera centres' 10th-90th percentile extent is 10 units). Observations are the triangulated
 keypoints of each image: ``keys`` are SIFT keypoint indices, identical for the same image in two
-submaps, so the shared keyframes link submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper). Confidence per
-point: ``track_length / (1 + reprojection error)``.
+submaps, so the shared keyframes link submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper).
+With the global mapper and ``joint_link`` the link is ``joint``: one bundle adjustment of the previous submap's and
+this one's reconstructions, each placed on it by all its cameras (``colmap_joint``; ``info["joint_link"]``).
+Confidence per point: ``track_length / (1 + reprojection error)``.
 
 Failures degrade instead of raising. Mapping is retried (``ATTEMPTS``: the global mapper, then the
 incremental one with initial triangulation angles 16 -> 4 -> 2 degrees and other seeds) while keyframes
@@ -69,6 +71,7 @@ from vggt_slam_pp.frontend.backbones.colmap_checks import (
     check_pairs,
     inconsistent,
 )
+from vggt_slam_pp.frontend.backbones.colmap_joint import joint_link
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -189,7 +192,7 @@ class ColmapBackbone(Backbone):
                  anchored: bool | None = None, max_image_size: int = 1600, refine_principal_point: bool = True,
                  camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True,
                  fold_check: FoldCheckConfig | None = FOLD_CHECK, mapper: str = "global",
-                 estimate_model: str | None = "RADIAL") -> None:
+                 estimate_model: str | None = "RADIAL", joint_link: bool = False) -> None:
         import weakref
 
         import pycolmap
@@ -223,8 +226,11 @@ class ColmapBackbone(Backbone):
         self._folded_attempts = 0  # of its mapping attempts, how many were folded
         self._cut: str | None = None  # the image from which a submap folded in every attempt is split off
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
+        self._previous_ref: np.ndarray | None = None  # its prediction frame: [4,4] cam_from_world of its first camera
+        self.joint_link = joint_link  # link each submap to the previous one by a joint bundle adjustment
         self._previous_names: set[str] = set()  # its images that the front-end kept
-        self._pending: list[tuple[tuple[int, ...], object, str | None]] = []  # attempts: (frames, rec, features)
+        # attempts: (frames, rec, features, [4,4] cam_from_world of the prediction's first camera)
+        self._pending: list[tuple[tuple[int, ...], object, str | None, np.ndarray]] = []
         self._anchor_names: list[str] = []  # images of the current submap held fixed from the previous one
         self.keep_workdir = Path(keep_workdir) if keep_workdir else None
         self._count = 0
@@ -242,12 +248,12 @@ class ColmapBackbone(Backbone):
         kept = tuple(int(i) for i in frame_indices)
         chosen = None
         for k in range(len(self._pending) - 1, -1, -1):
-            frames, rec, _ = self._pending[k]
+            frames, rec, _, ref = self._pending[k]
             if frames[:len(kept)] == kept:
-                self._previous, chosen = rec, k
+                self._previous, self._previous_ref, chosen = rec, ref, k
                 self._previous_names = {f"{i:08d}.png" for i in kept}  # a split-off tail is no anchor
                 break
-        for k, (_, _, features) in enumerate(self._pending):  # the other attempts' features are not needed
+        for k, (_, _, features, _) in enumerate(self._pending):  # the other attempts' features are not needed
             if k != chosen and features is not None:
                 Path(features).unlink(missing_ok=True)
         self._pending = []
@@ -648,6 +654,21 @@ class ColmapBackbone(Backbone):
             database.close()
         return out
 
+    def _link_to_previous(self, rec, T_ref_world: np.ndarray, pred: SubmapPrediction) -> None:
+        """The Sim(3) link to the previous submap from a joint bundle adjustment (``colmap_joint``), in the two
+        predictions' frames, as ``pred.info["joint_link"]``: {"prev_frames", "T_prev_curr", "residual" (the
+        cameras' placement residual, previous submap units), "relative_residual" (that over the cameras'
+        spread)}; nothing when the two cannot be joined."""
+        found = joint_link([(self._previous, self._previous_names), (rec, None)],
+                           threads=1 if self.deterministic else self.num_threads)
+        if found is None:
+            return
+        T, residual, relative = found
+        T_prev_curr = self._previous_ref @ T @ se3_inverse(T_ref_world)
+        pred.info["joint_link"] = {"prev_frames": sorted(int(n[:-4]) for n in self._previous_names),
+                                   "T_prev_curr": T_prev_curr.tolist(), "residual": residual,
+                                   "relative_residual": relative}
+
     # -- conversion -----------------------------------------------------------------------------
     def predict(self, frames: Sequence[Frame]) -> SubmapPrediction:
         S = len(frames)
@@ -661,7 +682,11 @@ class ColmapBackbone(Backbone):
                 features = str(self._keep_features(work / "database.db", rec)) if self._features is not None else None
                 if features is not None:
                     pred.info["features"] = features
-                self._pending.append((tuple(int(f.index) for f in frames), rec, features))
+                T_ref_world = np.vstack([rec.find_image_with_name(names[int(np.argmax(pred.valid))])
+                                         .cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]])
+                if self.joint_link and self._previous is not None and not self._anchor_names:
+                    self._link_to_previous(rec, T_ref_world, pred)
+                self._pending.append((tuple(int(f.index) for f in frames), rec, features, T_ref_world))
             return pred
         finally:
             if self.keep_workdir is not None:
@@ -753,4 +778,4 @@ def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
     b = config.backbone
     return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
                           deterministic=b.deterministic, keep_features=b.image_features and config.backend,
-                          mapper=b.colmap_mapper)
+                          mapper=b.colmap_mapper, joint_link=b.colmap_link == "joint")

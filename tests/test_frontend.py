@@ -129,6 +129,17 @@ def test_sim3_odometry_recovers_known_transform_with_outliers(rng):
     e2 = estimate_edge(0, prev_clean, 1, curr_sparse)
     assert e2.method == "pose_scale" and np.allclose(e2.T_prev_curr, expected, atol=1e-9)
     assert np.allclose(chain([edge, edge])[2], expected @ expected, atol=1e-6)
+    # a joint link from the backbone (colmap --link joint) is used where it agrees with the shared keyframes
+    # (here 1 % in scale), and refused where it does not (10 %: the shared keyframes' link is kept)
+    from vggt_slam_pp.geometry import make_sim3
+
+    for factor, method in ((1.01, "joint"), (1.10, "pose_scale")):
+        T_joint = expected @ make_sim3(factor, np.eye(3), np.zeros(3))
+        link = {"prev_frames": [0, 1], "T_prev_curr": T_joint.tolist(), "residual": 0.01, "relative_residual": 0.003}
+        e3 = estimate_edge(0, prev_clean, 1, dataclasses.replace(curr_sparse, info={"joint_link": link}))
+        assert e3.method == method
+        assert np.allclose(e3.T_prev_curr, T_joint if method == "joint" else expected, atol=1e-9)
+    assert e3.relative_residual != e3.relative_residual  # NaN: not a joint link
 
 
 def test_odometry_degrades_without_correspondences(rng):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vggt_slam_pp.frontend.backbones.colmap_joint import joint_link, placement
+from vggt_slam_pp.frontend.backbones.colmap_joint import FORWARD_MOTION_COS, forward_motion, joint_link, placement
 from vggt_slam_pp.geometry import make_sim3, sim3_inverse
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -154,3 +154,17 @@ def test_submaps_with_different_cameras_are_not_joined():
     curr = _reconstruction(poses, points, range(8, 20), np.eye(4), {}, focal=1.03 * F)
     assert joint_link([(prev, None), (curr, None)]) is None
     assert joint_link([(prev, None), (_reconstruction(poses, points, range(8, 20), np.eye(4), {}), None)]) is not None
+
+
+def test_forward_motion_is_told_from_sideways_motion():
+    """``auto`` links by the joint adjustment unless the cameras move along their optical axes."""
+    poses, points = _scene()  # moving along x, looking along z (turning 2 deg per image)
+    sideways = _reconstruction(poses, points, range(0, 12), np.eye(4), {})
+    ahead_poses = poses.copy()
+    for i, T in enumerate(ahead_poses):  # the same cameras, now stepping along their own optical axis
+        c = np.array([0.0, 0.0, 0.5 * i])
+        T[:3, :3], T[:3, 3] = np.eye(3), -c
+    ahead = _reconstruction(ahead_poses, points + [0.0, 0.0, 8.0], range(0, 12), np.eye(4), {})
+    assert forward_motion([sideways]) < 0.2 < FORWARD_MOTION_COS < forward_motion([ahead]) <= 1.0
+    # only the images named are used
+    assert forward_motion([sideways, ahead], [None, set()]) == forward_motion([sideways])

@@ -796,7 +796,7 @@ def _median_or_none(values: list) -> float | None:
 
 
 def bench_frontend(data: str | Path, workdir: str | Path, runs: int = 5, sequences: list[str] | None = None,
-                   rendered_frames: int = 800, deterministic: bool = True, link: str = "shared",
+                   rendered_frames: int = 800, deterministic: bool = True, link: str = "auto",
                    progress=None) -> dict:
     """The ``colmap`` front-end on every real sequence under ``data`` and a rendered one, each run
     ``runs`` times with seeds 0..runs-1 (no back-end): per sequence the median, worst and spread of the

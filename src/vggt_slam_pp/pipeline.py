@@ -59,9 +59,10 @@ class BackboneConfig:
     colmap_matcher: str = "exhaustive"  # colmap: "exhaustive" (all pairs in a submap) or "sequential"
     colmap_mapper: str = "global"  # colmap: "global" (each submap on its own by COLMAP's global mapper, linked by
     # its shared keyframes) or "incremental" (registered into the previous submap's shared keyframes; docs/frontend.md)
-    colmap_link: str = "shared"  # colmap, global mapper: "shared" (each submap linked to the previous one by their
-    # shared keyframes) or "joint" (by one bundle adjustment of both, each placed by all its cameras: better on real
-    # EuRoC and the castle walk, worse on rendered forward motion; docs/frontend.md)
+    colmap_link: str = "auto"  # colmap, global mapper: how each submap is linked to the previous one: "shared" (by
+    # their shared keyframes), "joint" (by one bundle adjustment of both, each placed by all its cameras: better on
+    # real EuRoC and the castle walk, worse on forward motion), "auto" (joint unless the cameras move ahead;
+    # docs/frontend.md, "The joint link")
     deterministic: bool = True  # colmap: the mapper on one thread too (bit-identical runs, ~30 % slower; docs/frontend.md)
     image_features: bool = True  # colmap: keep each submap's feature database for loops from images (about 10 MB
     # per submap of 16-20 keyframes in run/submaps/; False: loops are registered from points only)

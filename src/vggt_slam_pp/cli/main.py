@@ -629,10 +629,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="colmap: reconstruct each submap on its own with COLMAP's global mapper and link it by its "
                         "shared keyframes (default), or register it into the previous submap's shared keyframes "
                         "with the incremental mapper")
-    r.add_argument("--link", choices=("shared", "joint"),
+    r.add_argument("--link", choices=("auto", "shared", "joint"),
                    help="colmap, global mapper: link each submap to the previous one by their shared keyframes "
-                        "(shared, default) or by one bundle adjustment of both, each placed by all its cameras "
-                        "(joint: better on real handheld and drone sequences, worse on forward driving)")
+                        "(shared) or by one bundle adjustment of both, each placed by all its cameras (joint: better "
+                        "on real handheld and drone sequences, worse on forward driving); auto (default): joint "
+                        "unless the camera moves straight ahead")
     r.add_argument("--submap-size", type=int,
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
     r.add_argument("--overlap", type=int,
@@ -664,7 +665,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "rendered")
     b.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
                    help="frontend: colmap on one thread (default; bit-identical runs per seed)")
-    b.add_argument("--link", choices=("shared", "joint"), default="shared",
+    b.add_argument("--link", choices=("auto", "shared", "joint"), default="auto",
                    help="frontend: how consecutive colmap submaps are linked (run --link)")
     b.add_argument("--points", type=int, default=6_500_000, help="dem: number of points")
     b.add_argument("--frames", type=int, default=600, help="covisibility, loops, registration: frames per synthetic sequence")

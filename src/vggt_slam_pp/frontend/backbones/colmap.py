@@ -28,8 +28,9 @@ The submap frame is frame 0's camera (COLMAP's arbitrary world is moved there, a
 the camera centres' 10th-90th percentile extent is 10 units). Observations are the triangulated
 keypoints of each image: ``keys`` are SIFT keypoint indices, identical for the same image in two
 submaps, so the shared keyframes link submaps (odometry method ``pose_scale``; ``anchored`` with the incremental mapper).
-With the global mapper and ``joint_link`` the link is ``joint``: one bundle adjustment of the previous submap's and
-this one's reconstructions, each placed on it by all its cameras (``colmap_joint``; ``info["joint_link"]``).
+With the global mapper the link is ``joint`` (``link`` "joint", or "auto" unless the cameras move ahead): one bundle
+adjustment of the previous submap's and this one's reconstructions, each placed on it by all its cameras
+(``colmap_joint``; ``info["joint_link"]``).
 Confidence per point: ``track_length / (1 + reprojection error)``.
 
 Failures degrade instead of raising. Mapping is retried (``ATTEMPTS``: the global mapper, then the
@@ -71,7 +72,7 @@ from vggt_slam_pp.frontend.backbones.colmap_checks import (
     check_pairs,
     inconsistent,
 )
-from vggt_slam_pp.frontend.backbones.colmap_joint import joint_link
+from vggt_slam_pp.frontend.backbones.colmap_joint import FORWARD_MOTION_COS, forward_motion, joint_link
 from vggt_slam_pp.frontend.types import SubmapPrediction
 from vggt_slam_pp.geometry.lie import se3_inverse
 from vggt_slam_pp.io.frames import Frame
@@ -192,7 +193,7 @@ class ColmapBackbone(Backbone):
                  anchored: bool | None = None, max_image_size: int = 1600, refine_principal_point: bool = True,
                  camera_model: str = "OPENCV", fix_anchor: bool = True, keep_features: bool = True,
                  fold_check: FoldCheckConfig | None = FOLD_CHECK, mapper: str = "global",
-                 estimate_model: str | None = "RADIAL", joint_link: bool = False) -> None:
+                 estimate_model: str | None = "RADIAL", link: str = "auto") -> None:
         import weakref
 
         import pycolmap
@@ -227,7 +228,10 @@ class ColmapBackbone(Backbone):
         self._cut: str | None = None  # the image from which a submap folded in every attempt is split off
         self._previous = None  # the last committed reconstruction (pycolmap), the anchor of the next submap
         self._previous_ref: np.ndarray | None = None  # its prediction frame: [4,4] cam_from_world of its first camera
-        self.joint_link = joint_link  # link each submap to the previous one by a joint bundle adjustment
+        if link not in ("auto", "shared", "joint"):
+            raise ValueError(f"unknown link {link!r}")
+        self.link = link  # "joint": link each submap to the previous one by a joint bundle adjustment; "auto": unless
+        # the cameras move along their optical axes (colmap_joint.FORWARD_MOTION_COS); "shared": never
         self._previous_names: set[str] = set()  # its images that the front-end kept
         # attempts: (frames, rec, features, [4,4] cam_from_world of the prediction's first camera)
         self._pending: list[tuple[tuple[int, ...], object, str | None, np.ndarray]] = []
@@ -658,7 +662,12 @@ class ColmapBackbone(Backbone):
         """The Sim(3) link to the previous submap from a joint bundle adjustment (``colmap_joint``), in the two
         predictions' frames, as ``pred.info["joint_link"]``: {"prev_frames", "T_prev_curr", "residual" (the
         cameras' placement residual, previous submap units), "relative_residual" (that over the cameras'
-        spread)}; nothing when the two cannot be joined."""
+        spread)}; nothing when the two cannot be joined, or with ``link`` "auto" when the cameras move ahead."""
+        if self.link == "auto":
+            ahead = forward_motion([self._previous, rec], [self._previous_names, None])
+            if not ahead < FORWARD_MOTION_COS:
+                log.debug("colmap: forward motion (median |cos| %.2f): linked by the shared keyframes", ahead)
+                return
         found = joint_link([(self._previous, self._previous_names), (rec, None)],
                            threads=1 if self.deterministic else self.num_threads)
         if found is None:
@@ -684,7 +693,7 @@ class ColmapBackbone(Backbone):
                     pred.info["features"] = features
                 T_ref_world = np.vstack([rec.find_image_with_name(names[int(np.argmax(pred.valid))])
                                          .cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]])
-                if self.joint_link and self._previous is not None and not self._anchor_names:
+                if self.link != "shared" and self._previous is not None and not self._anchor_names:
                     self._link_to_previous(rec, T_ref_world, pred)
                 self._pending.append((tuple(int(f.index) for f in frames), rec, features, T_ref_world))
             return pred
@@ -778,4 +787,4 @@ def from_run_config(config: RunConfig, source: FrameSource) -> Backbone:
     b = config.backbone
     return ColmapBackbone(calibrated=config.calibrated, seed=b.seed, matcher=b.colmap_matcher,
                           deterministic=b.deterministic, keep_features=b.image_features and config.backend,
-                          mapper=b.colmap_mapper, joint_link=b.colmap_link == "joint")
+                          mapper=b.colmap_mapper, link=b.colmap_link)

@@ -23,7 +23,12 @@ from vggt_slam_pp.geometry.alignment import estimate_sim3_robust
 
 log = logging.getLogger(__name__)
 
-MIN_SHARED_POINTS = 20  # keypoints seen in both submaps (as 3-D points) needed for a starting alignment
+MIN_SHARED_POINTS = 20
+# ``auto``: the joint link is used unless the cameras move along their optical axes (the median |cos| of the angle
+# between a camera's axis and its step to the next camera at least this): the joint model of two forward-motion
+# submaps drifts in scale more than their junction does (docs/frontend.md, "The joint link"); measured 0.43-0.76
+# on EuRoC, 0.26-0.55 on the castle walk, 0.99-1.00 on every rendered forward-motion sequence
+FORWARD_MOTION_COS = 0.9  # keypoints seen in both submaps (as 3-D points) needed for a starting alignment
 
 
 def _pose(image) -> np.ndarray:
@@ -57,6 +62,23 @@ def placement(T_cam_from: dict[str, np.ndarray], T_cam_to: dict[str, np.ndarray]
         return None
     t = c_to.mean(axis=0) - s * R @ c_from.mean(axis=0)
     return make_sim3(s, R, t)
+
+
+def forward_motion(recs, names: list[set[str] | None] | None = None) -> float:
+    """The median |cos| of the angle between each camera's optical axis and its step to the next camera (by image
+    name) over the reconstructions ``recs`` (each with the names of its images to use, None for all): 1 for a
+    camera moving straight ahead (driving), 0 for one moving sideways (a photo walk around a building)."""
+    cosines = []
+    for k, rec in enumerate(recs):
+        kept = None if names is None else names[k]
+        images = sorted((im for im in rec.images.values() if im.has_pose and (kept is None or im.name in kept)),
+                        key=lambda im: im.name)
+        for a, b in zip(images, images[1:], strict=False):
+            step = b.projection_center() - a.projection_center()
+            norm = float(np.linalg.norm(step))
+            if norm > 1e-12:
+                cosines.append(abs(float(np.dot(step / norm, a.viewing_direction()))))
+    return float(np.median(cosines)) if cosines else float("nan")
 
 
 def centre_residual(T_to_from: np.ndarray, T_cam_from: dict[str, np.ndarray], T_cam_to: dict[str, np.ndarray]) -> float:

@@ -6,7 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vggt_slam_pp.frontend.backbones.colmap_joint import FORWARD_MOTION_COS, forward_motion, joint_link, placement
+from vggt_slam_pp.frontend.backbones.colmap_joint import (
+    FORWARD_MOTION_COS,
+    forward_motion,
+    joint_link,
+    placement,
+)
 from vggt_slam_pp.geometry import make_sim3, sim3_inverse
 
 pycolmap = pytest.importorskip("pycolmap")

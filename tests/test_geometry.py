@@ -22,6 +22,7 @@ from vggt_slam_pp.geometry import (
     se3_exp,
     se3_inverse,
     se3_log,
+    sim3_covariance_at_origin,
     sim3_exp,
     sim3_inverse,
     sim3_log,
@@ -60,6 +61,26 @@ def test_sim3_exp_log_near_identity_and_pure_scale(rng):
     T = sim3_exp(pure_scale)
     np.testing.assert_allclose(decompose_sim3(T)[0], np.exp(pure_scale[:, 6]))
     np.testing.assert_allclose(sim3_log(T), pure_scale, atol=1e-12)
+
+
+def test_a_perturbation_about_a_point_is_moved_to_the_origin_exactly(rng):
+    # T_c exp(eta) T_c^-1 (a rotation, scale and shift about the point c) equals exp(A eta) about the origin, and
+    # the covariance moves with the same A
+    c = rng.normal(scale=5.0, size=3)
+    T_c = make_sim3(1.0, np.eye(3), c)
+    A = sim3_covariance_at_origin(np.eye(7), c)  # A A^T for the identity covariance
+    for eta in _random_xi(rng, 20) * 0.3:
+        about_c = T_c @ sim3_exp(eta) @ sim3_inverse(T_c)
+        xi = sim3_log(about_c)
+        B = np.eye(7)
+        B[3:6, 0:3], B[3:6, 6] = hat(c), -c
+        np.testing.assert_allclose(xi, B @ eta, atol=1e-9)
+    np.testing.assert_allclose(A, B @ B.T, atol=1e-12)
+    # a rotation about c leaves c where it was: its perturbation at the origin moves the origin by the lever arm
+    eta = np.r_[0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.0]
+    xi = B @ eta
+    assert np.linalg.norm(xi[3:6]) == pytest.approx(0.01 * np.linalg.norm(np.cross([0, 0, 1.0], c)), rel=1e-12)
+    np.testing.assert_allclose(transform_points(sim3_exp(xi), c[None])[0], c, atol=1e-3 * np.linalg.norm(c))
 
 
 def test_se3_exp_log_round_trip_and_rigidity(rng):

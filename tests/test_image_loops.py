@@ -8,10 +8,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vggt_slam_pp.backend.image_loops import ImageLoopConfig, available, fit_similarity, register_by_images
+from vggt_slam_pp.backend.image_loops import (
+    ImageLoopConfig,
+    available,
+    fit_similarity,
+    loop_information,
+    register_by_images,
+)
 from vggt_slam_pp.backend.registration import LoopBounds
 from vggt_slam_pp.backend.store import SubmapStore
-from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_inverse, so3_exp
+from vggt_slam_pp.geometry.lie import decompose_sim3, make_sim3, sim3_exp, sim3_inverse, sim3_log, so3_exp
 
 
 def test_fit_similarity_recovers_a_similarity_from_cameras(rng):
@@ -56,6 +62,34 @@ def passes(tmp_path_factory):
         scale = np.linalg.norm(np.diff(part.poses[[0, -1], :3, 3], axis=0)) / np.linalg.norm(centres[-1] - centres[0])
         truth[sid] = make_sim3(scale, part.poses[0, :3, :3], part.poses[0, :3, 3])  # submap frame (camera 0) -> world
     return store, truth
+
+
+def test_an_image_loop_is_certain_where_the_two_submaps_see_each_other():
+    # the query's cameras along a line from its origin; only the last two see the match submap
+    centres = np.c_[np.arange(8.0), np.zeros(8), np.zeros(8)]
+    linked = np.array([0, 0, 0, 0, 0, 0, 200, 900], float)
+    rel = 0.01
+    info = loop_information(rel, centres, linked)
+
+    def whitened(T):  # Mahalanobis length of the query's frame moved by T (right perturbation)
+        xi = sim3_log(T)
+        return float(np.sqrt(xi @ info @ xi))
+
+    c = (linked[:, None] * centres).sum(0) / linked.sum()
+    turn = make_sim3(1.0, so3_exp(np.array([0.0, 0.0, 2 * rel])), np.zeros(3))
+    about_c = make_sim3(1.0, np.eye(3), c) @ turn @ make_sim3(1.0, np.eye(3), -c)
+    # turning the query about the cameras that see the match costs its rotation alone (2 sigma) ...
+    assert whitened(about_c) == pytest.approx(2.0, rel=1e-6)
+    # ... and the same turn about its origin, which swings those cameras by 2 % of their 7-unit lever, more
+    assert whitened(turn) > 3.0
+    # a scale change about them likewise; a shift is in units of the cameras' spread
+    grow = make_sim3(np.exp(rel), np.eye(3), (1 - np.exp(rel)) * c)
+    assert whitened(grow) == pytest.approx(1.0, rel=1e-6)
+    spread = float(np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1))))
+    assert whitened(sim3_exp(np.r_[0, 0, 0, rel * spread, 0, 0, 0])) == pytest.approx(1.0, rel=1e-6)
+    # with no matches across known, every camera counts alike
+    even = loop_information(rel, centres, np.zeros(8))
+    np.testing.assert_allclose(even, loop_information(rel, centres, np.ones(8)))
 
 
 def test_a_revisit_is_registered_from_images_and_another_place_is_not(passes):

@@ -30,6 +30,7 @@ __all__ = [
     "se3_inverse",
     "sim3_exp",
     "sim3_log",
+    "sim3_covariance_at_origin",
     "se3_exp",
     "se3_log",
     "transform_points",
@@ -145,6 +146,18 @@ def sim3_log(T: np.ndarray) -> np.ndarray:
     W = _left_jacobian(_algebra(w, sigma))
     u = np.linalg.solve(W, t[..., None])[..., 0]
     return np.concatenate([w, u, sigma[..., None]], axis=-1)
+
+
+def sim3_covariance_at_origin(cov: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The covariance [7,7] of a Sim(3) tangent perturbation ``[omega, u, sigma]`` of a frame (``T exp(xi)``: on
+    the right, in the frame's own coordinates) taken about the frame's origin, from ``cov`` [7,7], the same
+    perturbation taken about the point ``c`` [3] of that frame. A registration is known best where its data
+    lie; its rotation and scale errors move the origin by the lever arm: ``u = v + [c]x omega - sigma c``
+    (the adjoint of the translation to ``c``, exact)."""
+    A = np.eye(7)
+    A[3:6, 0:3] = hat(np.asarray(c, np.float64))
+    A[3:6, 6] = -np.asarray(c, np.float64)
+    return A @ np.asarray(cov, np.float64) @ A.T
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:

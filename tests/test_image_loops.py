@@ -12,7 +12,7 @@ from vggt_slam_pp.backend.image_loops import (
     ImageLoopConfig,
     available,
     fit_similarity,
-    loop_information,
+    image_loop_information,
     register_by_images,
 )
 from vggt_slam_pp.backend.registration import LoopBounds
@@ -69,7 +69,7 @@ def test_an_image_loop_is_certain_where_the_two_submaps_see_each_other():
     centres = np.c_[np.arange(8.0), np.zeros(8), np.zeros(8)]
     linked = np.array([0, 0, 0, 0, 0, 0, 200, 900], float)
     rel = 0.01
-    info = loop_information(rel, centres, linked)
+    info = image_loop_information(rel, centres, linked)
 
     def whitened(T):  # Mahalanobis length of the query's frame moved by T (right perturbation)
         xi = sim3_log(T)
@@ -88,8 +88,8 @@ def test_an_image_loop_is_certain_where_the_two_submaps_see_each_other():
     spread = float(np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1))))
     assert whitened(sim3_exp(np.r_[0, 0, 0, rel * spread, 0, 0, 0])) == pytest.approx(1.0, rel=1e-6)
     # with no matches across known, every camera counts alike
-    even = loop_information(rel, centres, np.zeros(8))
-    np.testing.assert_allclose(even, loop_information(rel, centres, np.ones(8)))
+    even = image_loop_information(rel, centres, np.zeros(8))
+    np.testing.assert_allclose(even, image_loop_information(rel, centres, np.ones(8)))
 
 
 def test_a_revisit_is_registered_from_images_and_another_place_is_not(passes):

@@ -18,10 +18,10 @@ feature database (keypoints, descriptors, matches within the submap, its final c
    the cameras' spread (the registration agrees with the query's own reconstruction), and it sets the
    loop's information (rotation and log-scale sigma = the relative residual, at least ``min_sigma``;
    translation sigma = that times the cameras' spread), taken where the two submaps see each other and moved
-   to the query's origin by the lever arm (:func:`loop_information`). On the castle walk's closing loop this placed the last submap
-   against the first with half the error of the chained odometry (0.053 against 0.110 m over the two
-   submaps' cameras); a joint reconstruction of both submaps, each fitted to it, gave 0.090 m (its
-   relative scale 1.3 % off).
+   to the query's origin by the lever arm (:func:`image_loop_information`). On the castle walk's closing
+   loop this placed the last submap against the first with half the error of the chained odometry (0.053
+   against 0.110 m over the two submaps' cameras); a joint reconstruction of both submaps, each fitted to
+   it, gave 0.090 m (its relative scale 1.3 % off).
 
 The loop then goes through the same bounds and acceptance as a point registration
 (:mod:`vggt_slam_pp.backend.loops`). One candidate costs a few seconds on a CPU (matching 64 image pairs
@@ -87,7 +87,7 @@ def fit_similarity(T_a_cam: np.ndarray, T_b_cam: np.ndarray, min_width: float = 
     return make_sim3(s, R, t), resid / max(spread, 1e-12)
 
 
-def loop_information(rel: float, centres: np.ndarray, linked: np.ndarray) -> np.ndarray:
+def image_loop_information(rel: float, centres: np.ndarray, linked: np.ndarray) -> np.ndarray:
     """The information [7,7] (``[omega, u, sigma]``, query frame and units, as the graph's loop edge) of an image
     loop whose fit agrees with the query's own cameras to ``rel`` of their spread; ``centres`` [K,3]: the
     query's registered cameras in its own frame, ``linked`` [K]: each one's verified matches with the match
@@ -97,8 +97,9 @@ def loop_information(rel: float, centres: np.ndarray, linked: np.ndarray) -> np.
     cameras weighted by their matches across (all alike when none has any). There the rotation and log-scale
     sigma is ``rel`` and the translation sigma ``rel`` times the cameras' spread; the edge's frame origin (the
     query's first keyframe) lies a lever arm away, so its translation is less certain, and correlated with the
-    rotation and scale (:func:`~vggt_slam_pp.geometry.lie.sim3_covariance_at_origin`). Castle walk's closing
-    loop: query keyframes 26-29 see the match, the origin is keyframe 22 (docs/backend.md)."""
+    rotation and scale (:func:`~vggt_slam_pp.geometry.lie.sim3_covariance_at_origin`), as a point registration's
+    information is taken about the ICP's centre (``registration.loop_information``). Castle walk's closing loop:
+    query keyframes 26-29 see the match, the origin is keyframe 22 (docs/backend.md)."""
     w = linked if linked.sum() > 0 else np.ones(len(centres))
     c = (w[:, None] * centres).sum(axis=0) / w.sum()
     spread = float(np.sqrt(np.mean(np.sum((centres - centres.mean(axis=0)) ** 2, axis=1))))
@@ -289,7 +290,8 @@ def register_by_images(query: int, match: int, store: SubmapStore, T_world_query
         return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
     if turned > bounds.max_yaw_deg:
         return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
-    kw["information"] = loop_information(max(worst, config.min_sigma), own_q[:, :3, 3], np.array(linked, float))
+    kw["information"] = image_loop_information(max(worst, config.min_sigma), own_q[:, :3, 3],
+                                                np.array(linked, float))
     log.info("loop %d->%d from images: %d / %d keyframes registered, %d matches across, residual %.3f",
              query, match, n_q, n_m, cross, worst)
     return LoopResult(query, match, True, "accepted", Z, C, score=score, guess="images", **kw)

@@ -84,6 +84,23 @@ def test_submap_assembly_overlap_and_counts():
         SubmapAssembler(0)
 
 
+class _Sparse(Backbone):
+    name, dense = "sparse", False
+
+    def predict(self, frames):
+        raise AssertionError("not called")
+
+
+def test_the_overlap_grows_with_the_submap_for_sparse_backbones_and_stays_one_for_dense_ones():
+    # a long sparse submap shares its last half (its end drifts most), a short one of sparse photos two frames
+    assert [Frontend(_Sparse(), FrontendConfig(submap_size=w)).overlap for w in (6, 8, 16, 32, 64)] == [2, 2, 4, 16, 16]
+    assert Frontend(_Sparse(), FrontendConfig(submap_size=32, overlap=5)).overlap == 5  # --overlap wins
+    dense = SimulatedBackbone({0: np.eye(4)}, SimulatedNoise.zero(0))
+    assert Frontend(dense, FrontendConfig(submap_size=32)).overlap == 1
+    bridge = Frontend(_Sparse(), FrontendConfig(submap_size=32)).bridge_frames
+    assert 4 <= bridge <= 16
+
+
 # --------------------------------------------------------------------------------- odometry
 def _prediction(rng, T_cam_submap, n=400, outliers=0.0, scale=1.0, frame_indices=(0, 1)):
     """Two-frame prediction whose frames see the same world points (keys 0..n-1)."""

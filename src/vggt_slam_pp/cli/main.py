@@ -638,7 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="new keyframes per submap (w, default 32); photo walks and sparse keyframes: 8-16")
     r.add_argument("--overlap", type=int,
                    help="keyframes shared by consecutive submaps (default 0 = auto: 1 for vggt/simulated, "
-                        "max(2, min(8, w/4)) for colmap)")
+                        "w*w/64 within 2..16 for colmap: 2 for w 8, 4 for 16, 16 for 32)")
     r.add_argument("--image-loops", action=argparse.BooleanOptionalAction, default=None,
                    help="colmap: register loop candidates from the keyframes' images (default; keeps about 10 MB "
                         "of features per submap in the run folder); --no-image-loops registers them from points")

@@ -34,7 +34,7 @@ from vggt_slam_pp.errors import GeometryError
 from vggt_slam_pp.frontend.types import OdometryEdge, SubmapPrediction
 from vggt_slam_pp.geometry import make_sim3, sim3_inverse
 from vggt_slam_pp.geometry.alignment import estimate_sim3_robust
-from vggt_slam_pp.geometry.lie import se3_inverse, transform_points
+from vggt_slam_pp.geometry.lie import rotation_angle, se3_inverse, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -162,8 +162,8 @@ def overlap_disagreement(prev: SubmapPrediction, curr: SubmapPrediction,
             Rp = prev.T_cam_submap[shared[a].prev_pos][:3, :3] @ prev.T_cam_submap[shared[b].prev_pos][:3, :3].T
             Rc = curr.T_cam_submap[shared[a].curr_pos][:3, :3] @ curr.T_cam_submap[shared[b].curr_pos][:3, :3].T
             Rp, Rc = Rp / np.cbrt(np.linalg.det(Rp)), Rc / np.cbrt(np.linalg.det(Rc))
-            cos = np.clip((np.trace(Rp @ Rc.T) - 1) / 2, -1.0, 1.0)
-            worst = float(np.nanmax([worst, np.degrees(np.arccos(cos))]))
+            # from the rotation's log, not arccos of its trace: that is 1e-6 deg off for identical rotations
+            worst = float(np.nanmax([worst, np.degrees(rotation_angle(Rp @ Rc.T))]))
     return worst
 
 

@@ -69,11 +69,10 @@ def test_a_perturbation_about_a_point_is_moved_to_the_origin_exactly(rng):
     c = rng.normal(scale=5.0, size=3)
     T_c = make_sim3(1.0, np.eye(3), c)
     A = sim3_covariance_at_origin(np.eye(7), c)  # A A^T for the identity covariance
+    B = np.eye(7)
+    B[3:6, 0:3], B[3:6, 6] = hat(c), -c
     for eta in _random_xi(rng, 20) * 0.3:
-        about_c = T_c @ sim3_exp(eta) @ sim3_inverse(T_c)
-        xi = sim3_log(about_c)
-        B = np.eye(7)
-        B[3:6, 0:3], B[3:6, 6] = hat(c), -c
+        xi = sim3_log(T_c @ sim3_exp(eta) @ sim3_inverse(T_c))
         np.testing.assert_allclose(xi, B @ eta, atol=1e-9)
     np.testing.assert_allclose(A, B @ B.T, atol=1e-12)
     # a rotation about c leaves c where it was: its perturbation at the origin moves the origin by the lever arm

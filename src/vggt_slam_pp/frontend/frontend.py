@@ -55,7 +55,7 @@ class FrontendConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap_size: int = 32  # w: new keyframes per submap
     overlap: int = 0  # keyframes shared with the previous submap; 0 = auto (1 dense, sparse_overlap(w) sparse)
-    bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, 2 * overlap))
+    bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, min(16, 2 * overlap)))
     filter: FilterConfig = field(default_factory=FilterConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 

@@ -575,6 +575,22 @@ def test_worker_rejects_an_unknown_mode_and_a_bad_duty(tmp_path):
     for duty in (0.0, 1.5):
         with pytest.raises(BackendError, match="duty must be in"):
             BackendWorker(BackendConfig(), tmp_path, worker=WorkerConfig(duty=duty))
+    with pytest.raises(BackendError, match="yield latency must be"):
+        BackendWorker(BackendConfig(), tmp_path, worker=WorkerConfig(yield_latency_s=-1.0))
+
+
+def test_worker_duty_yields_while_its_latency_is_short_and_rises_as_it_falls_behind():
+    from vggt_slam_pp.backend.worker import WorkerConfig, _duty
+
+    w = WorkerConfig(duty=0.25, yield_latency_s=10.0, catch_up_lag=128)
+    assert _duty(w, 0.0, 0) == 0.25  # nothing waits: the front-end keeps the CPU
+    assert _duty(w, 10.0, 30) == 0.25  # within the latency it yields
+    assert _duty(w, 15.0, 30) == pytest.approx(0.625)  # then its duty rises linearly
+    assert _duty(w, 20.0, 30) == 1.0 and _duty(w, 60.0, 30) == 1.0  # to full speed at twice the latency
+    assert _duty(w, 1.0, 65) == 1.0  # more than half the catch-up lag waits: no pause at any latency
+    assert _duty(WorkerConfig(duty=0.25, catch_up_lag=0), 1.0, 10_000) == 0.25  # no catch-up lag: latency alone
+    assert _duty(WorkerConfig(duty=0.25, yield_latency_s=0.0), 0.5, 1) == 1.0  # 0 s: yields only when idle
+    assert _duty(WorkerConfig(duty=1.0), 0.0, 0) == 1.0  # duty 1: never pauses
 
 
 @pytest.mark.timeout(900)
@@ -972,6 +988,10 @@ def test_a_slow_backend_never_blocks_the_frontend_and_defers_queries_without_dro
     assert report["backend_timings"]["deferred_s"] > 0  # they ran
     assert len(graph["nodes"]) == report["submaps"]  # every submap is in the map
     assert all(e["match"] < e["query"] for e in graph["covisibility"])  # a late query sees older submaps only
+    wall = np.array(report["backend_seconds_per_submap"])
+    cpu = np.array(report["backend_cpu_seconds_per_submap"])
+    assert len(cpu) == len(wall) == report["submaps"] and (wall >= 0.4).all()
+    assert (cpu < wall - 0.3).all() and report["backend_cpu_s_per_submap"] > 0  # CPU time: the sleep is not work
 
 
 @pytest.mark.timeout(600)
@@ -981,13 +1001,14 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
     out = bench_memory(submaps=12, workdir=str(tmp_path), width=96, height=72)
     for key in ("peak_rss_mb_all", "backend_s_per_submap_first100", "backend_s_per_submap_last100",
                 "frontend_submit_wait_fraction", "backend_max_lag_submaps", "backend_queries_deferred",
-                "ate_reduction", "false_loops", "loops_off_truth",
-                "rss_mb_at_50", "growth"):  # the new keys and the old ones
+                "ate_reduction", "false_loops", "loops_off_truth", "backend_cpu_s_per_submap_first100",
+                "backend_cpu_s_per_submap_last100", "rss_mb_at_50", "growth"):  # the new keys and the old ones
         assert key in out, key
     assert isinstance(out["loops_off_truth"], list)
     assert out["peak_rss_mb_all"] >= out["peak_rss_mb"] > 0 and out["false_loops"] >= 0
     assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
+    assert out["backend_cpu_s_per_submap_last100"] is None
 
 
 def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():

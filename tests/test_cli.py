@@ -172,6 +172,16 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
     code, out, err = _run(capsys, "bench", "loops", "--backbone", "colmap", "--seed", 2)
     assert code == 0 and seen["colmap"]["seed"] == 2 and "loops from images" in out + err
     assert "target >= 30 %" in out + err and "footprint rule of the simulated bench: 1" in out + err
+    mem = {"submaps": 1074, "frames": 25000, "rss_mb_at_50": 400.0, "rss_mb_at_300": 440.0, "growth": 0.1,
+           "backend_s_per_submap_first100": 0.25, "backend_s_per_submap_last100": 0.7,
+           "backend_cpu_s_per_submap_first100": 0.2, "backend_cpu_s_per_submap_last100": 0.68,
+           "peak_rss_mb_all": 900.0, "frontend_submit_wait_fraction": 0.036, "backend_max_lag_submaps": 140,
+           "backend_queries_deferred": 300, "ate_reduction": 0.88, "false_loops": 0}
+    monkeypatch.setattr(benchmarks, "bench_memory", fake("memory", mem))
+    code, out, err = _run(capsys, "bench", "memory", "--submaps", 1000, "--seed", 1)
+    assert code == 0 and seen["memory"]["seed"] == 1 and seen["memory"]["submaps"] == 1000
+    assert "0.250 / 0.700 wall (target: last <= 1.3x first), 0.200 / 0.680 CPU" in out + err
+    assert "submit wait 3.6 %" in out + err and "ATE reduction 0.880" in out + err and "false loops 0" in out + err
 
 
 def test_bench_frontend_reports_missing_data_as_skipped(tmp_path, capsys):

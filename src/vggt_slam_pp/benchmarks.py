@@ -677,10 +677,12 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
     """What a long run must show (issue 24): the peak RSS over all processes (output writing included),
     the back-end's seconds per submap over submaps 100-199 and over the last 100, the front-end's share
     of its wall time spent handing submaps over, the back-end's lag, the ATE reduction and the false loops
-    (accepted loops whose ground-truth footprints share less than ``overlap_threshold``)."""
+    (accepted loops whose ground-truth footprints share less than ``overlap_threshold``). The per-submap figures
+    come in wall time (issue 24's keys) and in the back-end thread's CPU time (``backend_cpu_s_*``)."""
     import json
 
     seconds = np.asarray(report.get("backend_seconds_per_submap", []), float)
+    cpu = np.asarray(report.get("backend_cpu_seconds_per_submap", []), float)
     graph = json.loads((run_dir / "graph.json").read_text())
     foot = _gt_footprints(source, [n["frames"] for n in graph["nodes"]])
     accepted = [(c["query"], c["match"]) for c in graph["loop_candidates"] if c["accepted"]]
@@ -690,6 +692,9 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
     return {"peak_rss_mb_all": report["peak_rss_mb"],
             "backend_s_per_submap_first100": float(seconds[100:200].mean()) if len(seconds) >= 200 else None,
             "backend_s_per_submap_last100": float(seconds[-100:].mean()) if len(seconds) >= 200 else None,
+            # the same in CPU time: the work, without the wait for a CPU the front-end held while it streamed
+            "backend_cpu_s_per_submap_first100": float(cpu[100:200].mean()) if len(cpu) >= 200 else None,
+            "backend_cpu_s_per_submap_last100": float(cpu[-100:].mean()) if len(cpu) >= 200 else None,
             "frontend_submit_wait_fraction": report["timings"]["backend_submit_s"] / frontend_s if frontend_s else None,
             "backend_max_lag_submaps": report.get("backend_max_lag_submaps"),
             "backend_queries_deferred": report.get("backend_queries_deferred"),

@@ -241,6 +241,10 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         "backend_s_per_submap": float(np.mean(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_s_per_submap_max": float(np.max(backend.seconds_per_submap)) if backend.seconds_per_submap else 0.0,
         "backend_seconds_per_submap": [round(float(x), 4) for x in backend.seconds_per_submap],
+        # the same in the back-end thread's CPU time: its work, without waiting for a CPU the front-end held
+        "backend_cpu_s_per_submap": float(np.mean(backend.cpu_seconds_per_submap)) if backend.cpu_seconds_per_submap
+        else 0.0,
+        "backend_cpu_seconds_per_submap": [round(float(x), 4) for x in backend.cpu_seconds_per_submap],
         "backend_timings": backend.timings,
         # submaps whose query was deferred while the back-end caught up (WorkerConfig.catch_up_lag)
         "backend_queries_deferred": len(backend.skipped),

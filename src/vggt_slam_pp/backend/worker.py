@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
+import numpy as np
+
 from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, PoseSnapshot, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError
@@ -57,10 +59,13 @@ class WorkerConfig:
     threads: int = 1  # threads for OpenCV / FAISS / torch inside the worker
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
-    duty: float = 0.5  # share of the wall time the worker may work while the front-end is still
-    # streaming: after each submap it pauses for (1 / duty - 1) x that submap's time, unless more than half
-    # the catch-up lag waits; once the front-end has finished it runs without pauses. Even at idle priority a busy
-    # worker costs a 2-core front-end ~10 % (cache and wake-up contention); 1.0: never pause
+    duty: float = 0.25  # share of the wall time the worker may work while the front-end is still streaming
+    # and its latency is within ``yield_latency_s``: after each submap it pauses for (1 / duty - 1) x that submap's
+    # time. Even at idle priority a busy worker slows a 2-core front-end (every stage 15-20 % at a duty of 0.5,
+    # session 28); 1.0: never pause. Once the front-end has finished it runs without pauses
+    yield_latency_s: float = 10.0  # the latency (how long the oldest waiting submap has waited) up to which the
+    # worker yields to the front-end at ``duty``; beyond it its duty rises linearly to 1 at twice this latency,
+    # and it never pauses while more than half the catch-up lag waits (_duty)
 
 
 def _limit_threads(n: int, with_torch: bool) -> None:
@@ -116,6 +121,18 @@ def _build(config: BackendConfig, folder: str | Path, prior_map: tuple[str, bool
     return backend
 
 
+def _duty(worker: WorkerConfig, latency_s: float, backlog: int) -> float:
+    """The share of the wall time a worker works while the front-end streams: ``worker.duty`` while the oldest
+    waiting submap has waited at most ``yield_latency_s`` (``latency_s``), rising linearly to 1 at twice that, and 1
+    while more than half the catch-up lag waits. A short run's back-end work mostly waits for the end of the
+    stream (the front-end keeps its speed); a long run's back-end works harder the further it falls behind
+    (docs/backend.md, "Worker duty")."""
+    if worker.catch_up_lag > 0 and backlog > worker.catch_up_lag // 2:
+        return 1.0
+    late = (latency_s - worker.yield_latency_s) / max(worker.yield_latency_s, 1e-9)
+    return float(worker.duty + (1.0 - worker.duty) * np.clip(late, 0.0, 1.0))
+
+
 def _deferring(was: bool, backlog: int, lag: int) -> bool:
     """Whether a worker with ``backlog`` submaps waiting defers the next one's query: from a backlog over
     ``lag`` until it is back at half of it (``was``: it deferred the last one; ``lag`` <= 0: never). The
@@ -140,12 +157,12 @@ def _serve(config: BackendConfig, worker: WorkerConfig, folder: str, inbox, outb
         _limit_threads(worker.threads, config.encoder != "hog")
         backend = _build(config, folder, prior_map)
         outbox.put(("ready", None))
-        waiting: collections.deque = collections.deque()  # received, not yet processed
+        waiting: collections.deque = collections.deque()  # (arrival time, message) received, not yet processed
         deferring = False  # catching up: from a backlog over the lag down to half of it, every query deferred
         while True:
             if not waiting:
                 try:
-                    waiting.append(inbox.get(timeout=0.05 if backend.deferred else 1.0))
+                    waiting.append((time.perf_counter(), inbox.get(timeout=0.05 if backend.deferred else 1.0)))
                 except queue.Empty:
                     if os.getppid() != parent:  # the caller is gone (killed): stop quietly
                         return
@@ -154,22 +171,23 @@ def _serve(config: BackendConfig, worker: WorkerConfig, folder: str, inbox, outb
                     continue
             while True:  # everything sent so far: the backlog decides how to process the oldest
                 try:
-                    waiting.append(inbox.get_nowait())
+                    waiting.append((time.perf_counter(), inbox.get_nowait()))
                 except queue.Empty:
                     break
-            msg = waiting.popleft()
+            _, msg = waiting.popleft()
             if msg is None:
                 result = backend.finish()
                 result.peak_rss_mb = peak_rss_mb()
                 outbox.put(("result", result))
                 return
             t0 = time.perf_counter()
-            backlog = sum(m is not None for m in waiting)
+            backlog = sum(m is not None for _, m in waiting)
             deferring = _deferring(deferring, backlog, worker.catch_up_lag)
             outbox.put(("snapshot", _plain(backend.add_submap(msg, query=not deferring))))
-            duty = worker.duty
-            if 0 < duty < 1 and not streaming_done.is_set() and backlog <= worker.catch_up_lag // 2:
-                streaming_done.wait((time.perf_counter() - t0) * (1.0 / duty - 1.0))
+            now = time.perf_counter()
+            duty = _duty(worker, now - waiting[0][0] if waiting else 0.0, backlog)
+            if duty < 1 and not streaming_done.is_set():
+                streaming_done.wait((now - t0) * (1.0 / duty - 1.0))
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller, which re-raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
 
@@ -218,6 +236,8 @@ class BackendWorker:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
         if not 0 < worker.duty <= 1:
             raise BackendError(f"the worker's duty must be in (0, 1], got {worker.duty}")
+        if not worker.yield_latency_s >= 0:
+            raise BackendError(f"the worker's yield latency must be >= 0 s, got {worker.yield_latency_s}")
         self.config, self.worker_config, self.mode = config, worker, mode
         self.folder = Path(folder)
         self.store = SubmapStore(self.folder, cache_size=0)  # the writer keeps nothing in memory

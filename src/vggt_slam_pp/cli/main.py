@@ -260,6 +260,10 @@ def _metres(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f} m"
 
 
+def _fraction(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def _print_summary(report: dict, out) -> None:
     msg = (f"{report['frames_processed']} frames -> {report['keyframes']} keyframes, {report['submaps']} submaps "
            f"in {report['seconds_total']:.1f} s ({report['fps']:.2f} frames/s)")
@@ -414,6 +418,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
         summary = (f"{result['submaps']} submaps ({result['frames']} frames): RSS (front-end + back-end) "
                    f"{result['rss_mb_at_50']:.0f} MiB at 50 submaps, {result['rss_mb_at_300']:.0f} MiB at 300: "
                    f"growth {100 * result['growth']:.1f} % (target < 20 %)")
+        if result.get("backend_s_per_submap_first100") is not None:  # 200 submaps or more: issue 24's figures
+            r = result
+            summary += (f"\nback-end s per submap, submaps 100-199 / the last 100: {r['backend_s_per_submap_first100']:.3f}"
+                        f" / {r['backend_s_per_submap_last100']:.3f} wall (target: last <= 1.3x first), "
+                        f"{r['backend_cpu_s_per_submap_first100']:.3f} / {r['backend_cpu_s_per_submap_last100']:.3f} "
+                        f"CPU; peak RSS {r['peak_rss_mb_all']:.0f} MiB (target <= 1024); submit wait "
+                        f"{100 * (r['frontend_submit_wait_fraction'] or 0):.1f} % (target <= 5 %); lag "
+                        f"{r['backend_max_lag_submaps']} submaps, {r['backend_queries_deferred']} queries deferred; "
+                        f"ATE reduction {_fraction(r['ate_reduction'])} (target >= 0.60); false loops "
+                        f"{r['false_loops']} (target 0)")
     else:
         result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed, noise=args.noise,
                                                workdir=str(args.workdir or "runs/bench_covisibility"))

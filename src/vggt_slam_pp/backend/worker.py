@@ -33,8 +33,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
-import numpy as np
-
 from vggt_slam_pp.backend.backend import Backend, BackendConfig, BackendResult, PoseSnapshot, SubmapMessage
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.errors import BackendError
@@ -130,7 +128,7 @@ def _duty(worker: WorkerConfig, latency_s: float, backlog: int) -> float:
     if worker.catch_up_lag > 0 and backlog > worker.catch_up_lag // 2:
         return 1.0
     late = (latency_s - worker.yield_latency_s) / max(worker.yield_latency_s, 1e-9)
-    return float(worker.duty + (1.0 - worker.duty) * np.clip(late, 0.0, 1.0))
+    return worker.duty + (1.0 - worker.duty) * min(max(late, 0.0), 1.0)
 
 
 def _deferring(was: bool, backlog: int, lag: int) -> bool:

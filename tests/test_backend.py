@@ -1255,3 +1255,49 @@ def test_proximity_reaches_as_far_as_the_estimate_can_have_drifted_between_the_t
     m.graph.add_edge(Edge(9, 30, np.eye(4), np.full(7, 0.1), "loop"))  # a loop 30 -> 9, three submaps back
     assert closer.drift_reach(33, np.inf)[6] == pytest.approx(0.06 * 60 + 4.0 + 0.06 * 60)
     assert closer.candidates(33, res) == []  # there the estimate must be corrected first: 30 m is too far
+
+
+def test_a_lone_loop_contradicted_by_a_verified_loop_between_the_same_places_waits_for_a_partner(tmp_path):
+    """On a street of look-alikes, consecutive queries verify onto the same place at different turns: a loop
+    that a verified loop between the same places (either one pending) disagrees with is not taken alone, as
+    the lone test alone would; one that agrees, or a disagreeing loop between other places, does not stop it."""
+    from types import SimpleNamespace
+
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.registration import LoopResult
+
+    def closer_with(config):
+        backend = Backend(config, SubmapStore(tmp_path / f"s{len(list(tmp_path.iterdir()))}"))
+        backend.map.gallery.grid = SimpleNamespace(tile_size=2.0)
+        for i in range(30):
+            backend.map.graph.add_node(i, make_sim3(1.0, np.eye(3), np.array([5.0 * i, 0.0, 0.0])))
+            backend.map.segment[i] = 0
+            backend.map._centroid[i] = np.zeros(3)
+        return backend.closer
+
+    closer = closer_with(BackendConfig())
+    P = closer.map.graph.poses
+
+    def loop(q, m, C):
+        Z = sim3_inverse(P[m]) @ C @ P[q]
+        return LoopResult(q, m, True, "accepted", Z, C, 0.5, 0.5, 0.1, 0, 0.0, "search_1", scale_cue=1.0)
+
+    lone = loop(12, 2, np.eye(4))
+    assert closer.odometry_consistent(lone)  # alone, with nothing verified near it
+    look_alike = loop(11, 2, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.array([6.0, -4.0, 0.0])))
+    closer._wait(look_alike)  # a pending loop from the previous query onto the same place, 23 deg and 7 m apart
+    assert closer.contradicted(lone) == [0] and closer.consistent(lone) == []
+    assert not closer.odometry_consistent(lone)
+    # the same query onto a neighbouring match counts as a contradiction too (one place cannot be two)
+    closer.loops, closer._pending = [], []
+    closer._wait(loop(12, 3, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.zeros(3))))
+    assert not closer.odometry_consistent(lone)
+    # an agreeing neighbour, or a disagreeing loop between other places, leaves the lone test as it was
+    closer.loops, closer._pending = [], []
+    closer._wait(loop(11, 2, np.eye(4)))
+    closer._wait(loop(25, 18, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.zeros(3))))
+    assert closer.contradicted(lone) == [] and closer.odometry_consistent(lone)
+    # the rule can be switched off
+    off = closer_with(BackendConfig(lone_needs_no_contradiction=False))
+    off._wait(loop(11, 2, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.array([6.0, -4.0, 0.0]))))
+    assert off.odometry_consistent(loop(12, 2, np.eye(4)))

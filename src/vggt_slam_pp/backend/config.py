@@ -49,6 +49,8 @@ class BackendConfig:
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     lone_min_structure_overlap: float = 0.3  # a loop accepted without a partner needs this structure overlap
     # (verification asks 0.25 of every loop; wrong ones accepted alone sat at 0.25-0.27: docs/backend.md)
+    lone_needs_no_contradiction: bool = True  # ... and no verified loop between the same places (queries and
+    # matches within consistency_submaps) that disagrees with it (LoopCloser.contradicted)
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
     unplaced_candidates: int = 10  # its best covisible submaps by votes are all registered

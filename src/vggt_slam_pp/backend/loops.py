@@ -14,7 +14,8 @@ which verified registrations become edges of the pose graph.
    (:func:`~vggt_slam_pp.backend.image_loops.register_by_images`);
 3. a verified loop becomes an edge when it closes a consistent cycle with another verified loop
    (:meth:`LoopCloser.consistent`, pairwise consistency) or when its correction is within one sigma of the
-   drift model (:meth:`LoopCloser.odometry_consistent`); a loop that would place a recording in the map
+   drift model and no verified loop between the same places disagrees with it
+   (:meth:`LoopCloser.odometry_consistent`, :meth:`LoopCloser.contradicted`); a loop that would place a recording in the map
    needs ``placement_votes`` agreeing loops (:meth:`LoopCloser.placement`). Otherwise it waits for a
    partner ("pending"). Rejected candidates are kept with their reason.
 """
@@ -247,15 +248,28 @@ class LoopCloser:
         neighbouring matches do not count: a query placed at a look-alike place registers onto every
         submap that saw that place, consistently (1,000-submap bench, seed 1: one query onto submaps
         1 and 2, 246 m wrong)."""
+        return [k for k, agrees, dq in self._cycles(r) if agrees and dq > 0]
+
+    def contradicted(self, r: LoopResult) -> list[int]:
+        """Indices (in :attr:`loops`) of the verified loops, accepted or pending, between the same two places
+        as ``r`` (queries and matches at most ``consistency_submaps`` apart, the same query onto another
+        match included) that do *not* close a consistent cycle with it: one of the two is wrong, and which
+        one, neither can tell. A loop so contradicted is not accepted alone (:meth:`odometry_consistent`):
+        on a street of look-alikes, consecutive queries verify onto the same place at different turns."""
+        return [k for k, agrees, _ in self._cycles(r) if not agrees]
+
+    def _cycles(self, r: LoopResult):
+        """``(index, consistent, |q - q'|)`` for every verified loop, accepted or pending, whose query and match
+        are within ``consistency_submaps`` of ``r``'s (not ``r``'s own pair), in the same recordings:
+        whether it closes a consistent cycle with ``r`` (:meth:`consistent`)."""
         c, reg, m = self.config, self.config.registration, self.map
         P = m.graph.poses
-        out = []
         for k, o in enumerate(self.loops):
             if not (o.accepted or k in self._pending) or o.T_match_query is None:
                 continue
             dq, dm = abs(o.query - r.query), abs(o.match - r.match)
-            if dq == 0 or dq > c.consistency_submaps or dm > c.consistency_submaps:
-                continue  # a partner from the same query is no evidence: one placement tested twice
+            if dq + dm == 0 or dq > c.consistency_submaps or dm > c.consistency_submaps:
+                continue
             if not (m.same_segment(o.query, r.query) and m.same_segment(o.match, r.match)):
                 continue  # the cycle needs odometry between the two queries and between the two matches
             O_m = sim3_inverse(P[r.match]) @ P[o.match]
@@ -269,10 +283,9 @@ class LoopCloser:
             ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
             log.debug("cycle %d->%d / %d->%d: scale %.3f, angle %.2f deg, translation %.2f (tolerance %.2f)",
                       r.query, r.match, o.query, o.match, s, ang, np.linalg.norm(t), tol_t)
-            if (abs(np.log(s)) <= walk * reg.scale_sigma_per_submap and ang <= walk * reg.yaw_sigma_per_submap_deg
-                    and np.linalg.norm(t) <= tol_t):
-                out.append(k)
-        return out
+            agrees = (abs(np.log(s)) <= walk * reg.scale_sigma_per_submap and ang <= walk * reg.yaw_sigma_per_submap_deg
+                      and np.linalg.norm(t) <= tol_t)
+            yield k, bool(agrees), dq
 
     def odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`) closes
@@ -281,7 +294,8 @@ class LoopCloser:
         realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25; a loop
         registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its scale change is not
         tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry drifted,
-        measured, not a sign of a wrong place (its turn and move still are tested)."""
+        measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified loop
+        between the same places disagree with it (:meth:`contradicted`)."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:
@@ -290,8 +304,14 @@ class LoopCloser:
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
         log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f)",
                   r.query, r.match, log_s, b.max_log_scale / 3, angle, b.max_yaw_deg / 3, moved, b.max_translation / 3)
-        return (log_s <= b.max_log_scale / 3 or r.scale_cue > 0) and angle <= b.max_yaw_deg / 3 \
-            and moved <= b.max_translation / 3
+        if not ((log_s <= b.max_log_scale / 3 or r.scale_cue > 0) and angle <= b.max_yaw_deg / 3
+                and moved <= b.max_translation / 3):
+            return False
+        against = self.contradicted(r) if self.config.lone_needs_no_contradiction else []
+        if against:  # one of the two is wrong, and this loop alone cannot say which
+            log.info("loop %d->%d not accepted alone: verified loop(s) %s between the same places disagree",
+                     r.query, r.match, [(self.loops[k].query, self.loops[k].match) for k in against])
+        return not against
 
     def bounds(self, match: int, query: int) -> LoopBounds:
         """What odometry can have drifted between ``match`` and ``query`` (submap ids):

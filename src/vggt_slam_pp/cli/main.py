@@ -509,7 +509,9 @@ def _loops_table(result: dict) -> str:
                     " (a loop placing the query's cameras > 1 m from the truth; by the footprint rule of the "
                     f"simulated bench: {sum(r.get('footprint_false_loops', 0) for r in result['scenarios'].values())})"
                     if colmap else
-                f", lowest fps ratio on/off {result['min_fps_ratio']:.2f} (target >= 0.9)"))
+                f", lowest fps ratio on/off {result['min_fps_ratio']:.2f} (target >= 0.9)"
+                + (f"; loops > 5 deg or 5 m off the truth {result['loops_off_truth']}" if "loops_off_truth" in result
+                   else "")))
     return "\n".join(rows)
 
 

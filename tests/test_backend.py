@@ -327,6 +327,38 @@ def test_a_guess_whose_structure_lies_beyond_the_icps_reach_is_not_refined(rng):
     assert not far.accepted and "within the ICP's reach" in far.reason, far.reason
 
 
+def test_icp_stops_a_fit_that_its_check_finds_hopeless_and_is_unchanged_by_one_it_passes(rng):
+    """ICP's mid-way check (RegistrationConfig.icp_check_iteration / icp_check_share): a fit whose structure is not
+    yet on the match's at the inlier radius is dropped there; a check that passes changes nothing."""
+    import dataclasses
+
+    from scipy.spatial import cKDTree
+
+    from vggt_slam_pp.backend.registration import RegistrationConfig, icp_point_to_plane, point_normals
+
+    world = _place(rng)
+    src = world[::3] + rng.normal(0, 0.01, world[::3].shape) + [0.6, -0.4, 0.0]
+    tree = cKDTree(world)
+    normals = point_normals(world, tree)
+    radii = np.r_[np.geomspace(4.0, 0.4, 12), [0.4] * 6]
+    seen = []
+    plain = icp_point_to_plane(src, tree, world, normals, radii)
+    passed = icp_point_to_plane(src, tree, world, normals, radii, check=(6, lambda T: seen.append(T) or True))
+    assert len(seen) == 1 and not np.allclose(seen[0], np.eye(4))  # called once, before step 6, with the fit so far
+    assert all(np.array_equal(a, b) for a, b in zip(plain, passed, strict=True))
+    assert np.allclose(plain[0][:3, 3], [-0.6, 0.4, 0.0], atol=0.05)
+    assert icp_point_to_plane(src, tree, world, normals, radii, check=(6, lambda T: False)) is None
+    # in register_loop: a true revisit passes the default check; an impossible check drops every guess
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    local = dataclasses.replace(RegistrationConfig(), search_peaks=0, height_cue=False)
+    guess = make_sim3(1.0, np.eye(3), np.array([1.0, 0.5, 0.0]))
+    again = world + rng.normal(0, 0.01, world.shape)
+    assert register_loop(5, 1, again, world, guess, np.eye(4), plane, 2.0, config=local).accepted
+    strict = dataclasses.replace(local, icp_check_share=4.0)  # 4 x 0.25: more than all of the structure
+    r = register_loop(5, 1, again, world, guess, np.eye(4), plane, 2.0, config=strict)
+    assert not r.accepted and "ICP iterations at every initial guess" in r.reason, r.reason
+
+
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):
     from vggt_slam_pp.backend.search import free_space_agreement
 

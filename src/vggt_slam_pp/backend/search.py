@@ -243,9 +243,13 @@ class CellMap:
 
 def _raster(uv: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
     ij = np.floor((uv - lo) / cell).astype(np.int64)
-    keep = np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)
+    return _raster_cells(ij[np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)], shape)
+
+
+def _raster_cells(ij: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """[H,W] float32: 1 at the cells ``ij`` [N,2] (all inside ``shape``), 0 elsewhere."""
     img = np.zeros(shape, np.float32)
-    img[ij[keep, 0], ij[keep, 1]] = 1.0
+    img[ij[:, 0], ij[:, 1]] = 1.0
     return img
 
 
@@ -255,15 +259,20 @@ _KERNEL = np.ones((3, 3), np.uint8)
 def _hue_raster(uv: np.ndarray, hue: np.ndarray | None, lo: np.ndarray, cell: float, shape: tuple[int, int]
                 ) -> np.ndarray:
     """Mean hue vector per cell [H,W,2] (zeros without colour)."""
-    out = np.zeros((*shape, 2), np.float32)
     if hue is None or len(uv) == 0:
-        return out
+        return np.zeros((*shape, 2), np.float32)
     ij = np.floor((uv - lo) / cell).astype(np.int64)
     keep = np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)
-    flat = ij[keep, 0] * shape[1] + ij[keep, 1]
+    return _hue_raster_cells(ij[keep], hue[keep], shape)
+
+
+def _hue_raster_cells(ij: np.ndarray, hue: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Mean hue vector [H,W,2] of the points at cells ``ij`` [N,2] (all inside ``shape``), hues [N,2]."""
+    out = np.zeros((*shape, 2), np.float32)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
     count = np.bincount(flat, minlength=shape[0] * shape[1]).astype(np.float32)
     for k in range(2):
-        total = np.bincount(flat, weights=hue[keep, k], minlength=shape[0] * shape[1]).astype(np.float32)
+        total = np.bincount(flat, weights=hue[:, k], minlength=shape[0] * shape[1]).astype(np.float32)
         out[..., k] = (total / np.maximum(count, 1.0)).reshape(shape)
     return out
 
@@ -333,23 +342,26 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
                 i1 = np.minimum(i1, np.ceil((near[0] + near[1] - m_lo + lo) / cell).astype(int))
             if np.any(i1 < i0):
                 continue
-            a_struct = _raster(rs[query.structure], lo, cell, shape)
-            a_clear = _clear(_raster(rs, lo, cell, shape), a_struct)
+            ij = np.floor((rs - lo) / cell).astype(np.int64)  # inside the template by construction
+            a_struct = _raster_cells(ij[query.structure], shape)
+            a_clear = _clear(_raster_cells(ij, shape), a_struct)
             win = (slice(i0[0], i1[0] + shape[0]), slice(i0[1], i1[1] + shape[1]))
             score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
                      - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
                      - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
             if coloured:
-                hue = _hue_raster(rs[query.structure], query.hue[query.structure], lo, cell, shape)
+                hue = _hue_raster_cells(ij[query.structure], query.hue[query.structure], shape)
                 a_colour = [np.ascontiguousarray(hue[..., 0]), np.ascontiguousarray(hue[..., 1]),
                             np.linalg.norm(hue, axis=-1).astype(np.float32)]
                 for sign, b_img, a_img in zip((1.0, 1.0, -1.0), b_colour, a_colour, strict=True):
                     score += sign * cv2.matchTemplate(b_img[win], a_img, cv2.TM_CCORR)
             is_max = (score >= cv2.dilate(score, _KERNEL)) & (score > 0)
             ii, jj = np.nonzero(is_max)
+            offset = m_lo + i0 * cell - lo - sR @ centre
             for k in np.argsort(-score[ii, jj])[: 2 * count]:
-                b = m_lo + (np.array([ii[k], jj[k]]) + i0) * cell - lo - sR @ centre
-                found.append(Alignment(float(score[ii[k], jj[k]]), np.c_[sR, b], float(yaw), float(s)))
+                A = np.empty((2, 3))
+                A[:, :2], A[:, 2] = sR, offset + np.array([ii[k], jj[k]]) * cell
+                found.append(Alignment(float(score[ii[k], jj[k]]), A, float(yaw), float(s)))
     found.sort(key=lambda g: -g.score)
     out: list[Alignment] = []
     for g in found:

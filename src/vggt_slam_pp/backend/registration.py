@@ -18,7 +18,9 @@ rescaled to it, and a result at another scale is refused (``RegistrationConfig.h
    the bounds, scored by free-space consistency; "search_k").
 2. **3-D refinement.** Point-to-plane ICP (the rejection radius shrinking from ``icp_radius_tiles`` to
    ``inlier_radius_tiles``, then ``icp_final_iterations`` more at the inlier radius; log-scale free in
-   the last ``icp_scale_rounds``) of q's points onto m's, from each guess.
+   the last ``icp_scale_rounds``) of q's points onto m's, from each guess; a fit with less than
+   ``icp_check_share`` of the verification's structure overlap at the inlier radius before round
+   ``icp_check_iteration`` stops there (it would not verify: most guesses of a revisit are such fits).
 3. **Verification**, on the best refinement (by free-space agreement x structure overlap):
    ``overlap`` (share of q's points with a neighbour in m within the inlier radius),
    ``structure_overlap`` (the same for points above the ground: flat ground aligns anywhere),

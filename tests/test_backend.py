@@ -1041,6 +1041,24 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
     assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
     assert out["backend_cpu_s_per_submap_last100"] is None
+    assert len(out["backend_cpu_s_per_100"]) == 1 and out["backend_cpu_s_per_100"][0] > 0
+
+
+@pytest.mark.timeout(600)
+def test_bench_memory_drives_round_a_block_when_asked_for_laps(tmp_path):
+    """``laps``: a block driven round that many times the same way (every lap after the first revisits), about
+    ``submaps / laps`` submaps a lap."""
+    from vggt_slam_pp.benchmarks import bench_memory
+    from vggt_slam_pp.io import open_source
+
+    out = bench_memory(submaps=10, workdir=str(tmp_path), width=96, height=72, laps=2)
+    (seq,) = tmp_path.glob("laps2_*_96x72_0")
+    assert (tmp_path / f"run_{seq.name.rsplit('_', 2)[0]}_0" / "report.json").is_file()
+    xy = open_source(seq).frame_ground_truth()[1].poses[:, :2, 3]
+    first, second = xy[: len(xy) // 2], xy[len(xy) // 2 + 10:]
+    gap = np.linalg.norm(second[:, None] - first[None], axis=-1).min(1)
+    assert gap.max() < 2.0 < np.ptp(xy[:, 0])  # the second lap retraces the first (1 m further out)
+    assert 5 <= out["submaps"] <= 20 and out["loops_accepted"] > 0
 
 
 def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():

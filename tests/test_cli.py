@@ -146,7 +146,7 @@ def test_run_command_simulated_and_bad_input(tmp_path, capsys):
                     "--replay")
 
 
-def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
+def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch, tmp_path):
     from vggt_slam_pp import benchmarks
 
     seen = {}
@@ -182,8 +182,13 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch):
     monkeypatch.setattr(benchmarks, "bench_memory", fake("memory", mem))
     code, out, err = _run(capsys, "bench", "memory", "--submaps", 1000, "--seed", 1)
     assert code == 0 and seen["memory"]["seed"] == 1 and seen["memory"]["submaps"] == 1000
+    assert seen["memory"]["laps"] == 0  # the block loop unless asked
     assert "0.250 / 0.700 wall (target: last <= 1.3x first), 0.200 / 0.680 CPU" in out + err
     assert "submit wait 3.6 %" in out + err and "ATE reduction 0.880" in out + err and "false loops 0" in out + err
+    assert _run(capsys, "bench", "memory", "--laps", 8)[0] == 0 and seen["memory"]["laps"] == 8
+    monkeypatch.undo()
+    code, out, err = _run(capsys, "bench", "memory", "--laps", -1, "--workdir", tmp_path)
+    assert code != 0 and "laps must be 0" in err and "Traceback" not in err
 
 
 def test_bench_frontend_reports_missing_data_as_skipped(tmp_path, capsys):

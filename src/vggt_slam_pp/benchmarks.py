@@ -642,22 +642,34 @@ def bench_relocalization(scene: str = "loop", frames: int = 600, width: int = 32
 
 
 def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: int = 0, width: int = 320,
-                 height: int = 240) -> dict:
+                 height: int = 240, laps: int = 0) -> dict:
     """A long synthetic run (the demo's block loop scaled up to about ``submaps`` submaps, same speed and
-    images) with the back-end on; RSS of the front-end plus the back-end process at 50 and at 300 submaps
-    from the run's ``memory_trace`` (every 10 submaps). Target: growth below 20 %."""
+    images; with ``laps`` > 0 instead a block driven round ``laps`` times the same way, each lap about
+    ``submaps / laps`` submaps, so that submaps 100-199 revisit as the last 100 do) with the back-end on; RSS
+    of the front-end plus the back-end process at 50 and at 300 submaps from the run's ``memory_trace``
+    (every 10 submaps). Target: growth below 20 %."""
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.pipeline import run
     from vggt_slam_pp.synthetic import make_scene, write_sequence
 
-    k = submaps / 24.0  # measured: the block scaled by k gives ~24 k submaps (213 for k = 8.9)
-    frames = int(600 * k)
-    seq = Path(workdir) / f"loop_{frames}_{width}x{height}_{seed}"
+    if laps < 0:
+        from vggt_slam_pp.errors import InputError
+
+        raise InputError(f"laps must be 0 (the block loop) or a number of laps, not {laps}")
+    if laps > 0:  # measured: one lap of the block scaled by k gives ~15 k submaps (77 for 3 laps at k = 1.67)
+        k = submaps / (15.0 * laps)
+        frames, scene, options = int(300 * k * laps), "laps", {"laps": float(laps)}
+    else:
+        k = submaps / 24.0  # measured: the block scaled by k gives ~24 k submaps (213 for k = 8.9)
+        frames, scene, options = int(600 * k), "loop", {}
+    name = f"{scene}{laps if laps > 0 else ''}_{frames}"
+    seq = Path(workdir) / f"{name}_{width}x{height}_{seed}"
     if not (seq / "groundtruth.txt").is_file():
-        write_sequence(make_scene("loop", frames=frames, width=width, height=height, seed=seed,
-                                  scene_options={"length": 60.0 * k, "width": 40.0 * k}), seq)
+        write_sequence(make_scene(scene, frames=frames, width=width, height=height, seed=seed,
+                                  scene_options={"length": 60.0 * k, "width": 40.0 * k, **options}), seq)
     t0 = time.perf_counter()
-    report = run(open_source(seq), _synthetic_run_config(seed), Path(workdir) / f"run_{frames}_{seed}")
+    run_dir = Path(workdir) / (f"run_{frames}_{seed}" if laps <= 0 else f"run_{name}_{seed}")
+    report = run(open_source(seq), _synthetic_run_config(seed), run_dir)
     # each process is read when *it* had handled n submaps (the back-end may lag behind the front-end)
     front = np.array(report["memory_trace"]["frontend"], float)
     back = np.array(report["memory_trace"]["backend"], float)
@@ -670,7 +682,7 @@ def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: i
            "memory_trace": report["memory_trace"], "ate_rmse_odometry": report.get("ate_rmse_odometry"),
            "ate_rmse": report.get("ate_rmse"), "loops_accepted": report.get("loops_accepted"),
            "backend_s_per_submap": report.get("backend_s_per_submap"), "target_growth": 0.2,
-           **_scale_figures(open_source(seq), Path(workdir) / f"run_{frames}_{seed}", report)}
+           **_scale_figures(open_source(seq), run_dir, report)}
     out["growth"] = out["rss_mb_at_300"] / out["rss_mb_at_50"] - 1.0
     if report["submaps"] < 300:
         out["warning"] = f"only {report['submaps']} submaps: the figure at 300 is the last one measured"
@@ -699,6 +711,7 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
             # the same in CPU time: the work, without the wait for a CPU the front-end held while it streamed
             "backend_cpu_s_per_submap_first100": float(cpu[100:200].mean()) if len(cpu) >= 200 else None,
             "backend_cpu_s_per_submap_last100": float(cpu[-100:].mean()) if len(cpu) >= 200 else None,
+            "backend_cpu_s_per_100": [round(float(cpu[i:i + 100].mean()), 3) for i in range(0, len(cpu), 100)],
             "frontend_submit_wait_fraction": report["timings"]["backend_submit_s"] / frontend_s if frontend_s else None,
             "backend_max_lag_submaps": report.get("backend_max_lag_submaps"),
             "backend_queries_deferred": report.get("backend_queries_deferred"),

@@ -414,7 +414,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"passes {r['loops_across']}, off the truth by > 5 deg / 5 m {len(r['wrong_loops_across'])}" for r in rows)
     elif args.suite == "memory":
         result = benchmarks.bench_memory(submaps=args.submaps, workdir=str(args.workdir or "runs/bench_memory"),
-                                         seed=args.seed)
+                                         seed=args.seed, laps=args.laps)
         summary = (f"{result['submaps']} submaps ({result['frames']} frames): RSS (front-end + back-end) "
                    f"{result['rss_mb_at_50']:.0f} MiB at 50 submaps, {result['rss_mb_at_300']:.0f} MiB at 300: "
                    f"growth {100 * result['growth']:.1f} % (target < 20 %)")
@@ -698,6 +698,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--displacement", type=float, default=1.0,
                    help="registration: the estimate is displaced within this share of the drift bounds (default 1)")
     b.add_argument("--submaps", type=int, default=320, help="memory: submaps in the long run (>= 300)")
+    b.add_argument("--laps", type=int, default=0,
+                   help="memory: 0 (default) the demo's block loop scaled up (two laps, the second the other way); N: "
+                        "a block driven round N times the same way (revisits from the second lap on)")
     b.add_argument("--seed", type=int, default=0,
                    help="covisibility, loops, registration, memory: world and noise seed (another seed: other solids along the same "
                         "trajectories; the figures in docs/ are for seed 0 unless they say otherwise)")

@@ -659,16 +659,17 @@ def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: i
     if laps > 0:  # measured: one lap of the block scaled by k gives ~15 k submaps (77 for 3 laps at k = 1.67)
         k = submaps / (15.0 * laps)
         frames, scene, options = int(300 * k * laps), "laps", {"laps": float(laps)}
+        name = run_name = f"laps{laps}_{frames}"
     else:
         k = submaps / 24.0  # measured: the block scaled by k gives ~24 k submaps (213 for k = 8.9)
         frames, scene, options = int(600 * k), "loop", {}
-    name = f"{scene}{laps if laps > 0 else ''}_{frames}"
+        name, run_name = f"loop_{frames}", f"{frames}"  # the folder names of earlier runs (cached renders)
     seq = Path(workdir) / f"{name}_{width}x{height}_{seed}"
     if not (seq / "groundtruth.txt").is_file():
         write_sequence(make_scene(scene, frames=frames, width=width, height=height, seed=seed,
                                   scene_options={"length": 60.0 * k, "width": 40.0 * k, **options}), seq)
     t0 = time.perf_counter()
-    run_dir = Path(workdir) / (f"run_{frames}_{seed}" if laps <= 0 else f"run_{name}_{seed}")
+    run_dir = Path(workdir) / f"run_{run_name}_{seed}"
     report = run(open_source(seq), _synthetic_run_config(seed), run_dir)
     # each process is read when *it* had handled n submaps (the back-end may lag behind the front-end)
     front = np.array(report["memory_trace"]["frontend"], float)

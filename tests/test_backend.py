@@ -359,6 +359,69 @@ def test_icp_stops_a_fit_that_its_check_finds_hopeless_and_is_unchanged_by_one_i
     assert not r.accepted and "ICP iterations at every initial guess" in r.reason, r.reason
 
 
+def test_icp_fits_every_structure_point_and_a_sample_of_the_flat_ground(rng, monkeypatch):
+    """RegistrationConfig.icp_max_flat_points: flat ground fixes only height, tilt and scale, so ICP fits the
+    structure and a capped sample of the rest; the verification still measures every point."""
+    import dataclasses
+
+    import vggt_slam_pp.backend.registration as reg
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    world = _place(rng, n_ground=12_000)
+    seen_again, T_q = _revisit(40, (9, 4), 1.25, rng, world)
+    wide = reg.LoopBounds(max_log_scale=0.4, max_translation=30.0, max_yaw_deg=180.0)
+    fitted = []
+    plain_icp = reg.icp_point_to_plane
+    monkeypatch.setattr(reg, "icp_point_to_plane", lambda src, *a, **k: fitted.append(len(src)) or plain_icp(src, *a, **k))
+    results = {}
+    for cap in (0, 300):
+        fitted.clear()
+        config = dataclasses.replace(reg.RegistrationConfig(), icp_max_flat_points=cap, max_points=20_000)
+        results[cap] = register_loop(5, 1, seen_again, world, T_q, np.eye(4), plane, 2.0, bounds=wide, config=config)
+        assert results[cap].accepted, results[cap].reason
+        assert np.allclose(results[cap].T_match_query, np.eye(4), atol=0.05)
+        sizes = set(fitted)
+        assert len(sizes) == 1  # every guess fits the same points
+        results[cap] = (results[cap], sizes.pop())
+    (all_points, n_all), (capped, n_capped) = results[0], results[300]
+    n_structure = int((world[:, 2] > 0.3).sum())  # the boxes' walls above the structure height (0.15 x 2 m)
+    assert n_all > 16_000 and abs(n_capped - 300 - n_structure) < 200
+    assert abs(capped.overlap - all_points.overlap) < 0.02  # measured on all the points either way
+
+
+def test_search_refined_by_descent_finds_the_grids_alignment(rng, monkeypatch):
+    """SearchConfig.refine_descent: the refinement's yaw at the peak's scale, then its scale at that yaw (9 of the
+    grid's 25 scorings per peak), lands where the whole yaw-scale grid does on a revisit."""
+    import dataclasses
+
+    import vggt_slam_pp.backend.search as search
+
+    world = _place(rng)
+    scored = []
+    plain_peaks = search.free_space_peaks
+
+    def counting(query, match, cell, yaws, scales, count=3, **kw):
+        if count == 1:  # the refinement
+            scored.append(len(yaws) * len(scales))
+        return plain_peaks(query, match, cell, yaws, scales, count, **kw)
+
+    monkeypatch.setattr(search, "free_space_peaks", counting)
+    up = np.array([0.0, 0.0, 1.0])
+    for yaw, shift, scale in ((40, (9, 4), 1.25), (-150, (-6, 8), 0.8)):
+        seen_again, T_q = _revisit(yaw, shift, scale, rng, world)
+        per_peak = {}
+        for descent in (False, True):
+            scored.clear()
+            config = dataclasses.replace(search.SearchConfig(), refine_descent=descent)
+            best, agreement = search.search_alignments(seen_again, world, up, up, 2.0, T_q, 0.4, 180.0, np.inf, 4,
+                                                       config)[0]
+            per_peak[descent] = sum(scored) / config.refine
+            # the truth is the identity (the revisit's own frame is the world's); the fine cell is 1 m here
+            assert agreement > 0.9
+            assert np.linalg.norm(transform_points(best, seen_again) - seen_again, axis=1).mean() < 2.0
+        assert per_peak == {False: 25, True: 9}
+
+
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):
     from vggt_slam_pp.backend.search import free_space_agreement
 

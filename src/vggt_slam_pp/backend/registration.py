@@ -18,7 +18,9 @@ rescaled to it, and a result at another scale is refused (``RegistrationConfig.h
    the bounds, scored by free-space consistency; "search_k").
 2. **3-D refinement.** Point-to-plane ICP (the rejection radius shrinking from ``icp_radius_tiles`` to
    ``inlier_radius_tiles``, then ``icp_final_iterations`` more at the inlier radius; log-scale free in
-   the last ``icp_scale_rounds``) of q's points onto m's, from each guess; a fit with less than
+   the last ``icp_scale_rounds``) of q's points onto m's, from each guess. ICP fits all of q's structure and
+   at most ``icp_max_flat_points`` of its other points: flat ground constrains only height, tilt and scale,
+   and as most of a submap it would outweigh the structure that fixes the in-plane motion. A fit with less than
    ``icp_check_share`` of the verification's structure overlap at the inlier radius before round
    ``icp_check_iteration`` stops there (it would not verify: most guesses of a revisit are such fits).
 3. **Verification**, on the best refinement (by free-space agreement x structure overlap):
@@ -79,6 +81,8 @@ class RegistrationConfig:
     # the bench worlds, 451 ended at >= min_structure_overlap, one of them from below 0.1 here (docs/backend.md)
     inlier_radius_tiles: float = 0.2
     max_points: int = 4000
+    icp_max_flat_points: int = 500  # ICP fits every structure point and at most this many others (drawn at
+    # random, seeded; 0: all): flat ground fixes only height, tilt and scale, and would outweigh the structure
     ground_percentile: float = 20.0  # a submap's ground level: this percentile of its heights
     structure_height_tiles: float = 0.15  # points this far above the ground are "structure"
     min_structure_points: int = 50
@@ -547,6 +551,11 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
     r_in = c.inlier_radius_tiles * unit
     normals = _REUSED.get(match, points_match, ("normals", c.normals_k), lambda: point_normals(dst, tree, c.normals_k))
+    fit_idx = np.arange(len(src))
+    if 0 < c.icp_max_flat_points < int((~own_structure).sum()):
+        flat = np.flatnonzero(~own_structure)
+        fit_idx = np.sort(np.r_[np.flatnonzero(own_structure), flat[_subsample(len(flat), c.icp_max_flat_points,
+                                                                              query)]])
     refined = []
     for name, G in guesses.items():
         start = transform_points(G, src)
@@ -556,7 +565,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             d_s = struct_tree.query(transform_points(T, start[own_structure]), distance_upper_bound=r_in)[0]
             return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
 
-        fit = icp_point_to_plane(start, tree, dst, normals, radii, c.icp_scale_rounds,
+        fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
                                  check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None)
         if fit is None:
             log.debug("loop %d->%d guess %s: structure overlap below %.2f after %d ICP iterations", query, match,
@@ -587,7 +596,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if not refined:
         return reject(f"structure overlap < {c.icp_check_share * c.min_structure_overlap:.2f} after "
                       f"{c.icp_check_iteration} ICP iterations at every initial guess", planar_inliers=n_planar)
-    refined.sort(key=lambda f: (-f.rank, -f.overlap))
+    refined.sort(key=lambda f: (-f.rank, -f.overlap, f.residual))  # ties (all verified): the tighter fit
     best = refined[0]
     s_overlap, overlap, residual, Z, agree, cells = (best.structure_overlap, best.overlap, best.residual, best.Z,
                                                       best.agreement, best.cells)

@@ -19,7 +19,8 @@ frames:
    the other submap saw open ground, so the score does not favour small scales as an occupancy
    correlation does. With the points' image colours, a structure agreement counts as far as the two
    cells' hues agree (:func:`hue_vectors`, :func:`colour_match`): every face of an object has its hue.
-4. The best alignments are refined at half the cell and ranked again by :func:`free_space_agreement`
+4. The best alignments are refined at half the cell (yaw and scale steps halved: by default the yaw at the
+   peak's scale, then the scale at the best yaw) and ranked again by :func:`free_space_agreement`
    in 3-D (heights scale with the query: a shrunken query's buildings fall under the structure height),
    and ICP refines the survivors (:mod:`vggt_slam_pp.backend.registration`).
 """
@@ -44,6 +45,8 @@ class SearchConfig:
     min_structure_cells: int = 8
     candidates_per_scale: int = 3  # the best distinct alignments kept per scale of the exhaustive pass
     refine: int = 8  # of all those, the best (by score) refined at the fine cell
+    refine_descent: bool = True  # refine yaw at the peak's scale, then scale at the best yaw (9 of the 5 x 5
+    # yaw-scale grid's 25 scorings); False: the whole grid
     min_agreement_cells: int = 10  # free-space agreement on fewer cells counts as none
 
 
@@ -437,11 +440,18 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     q_fine = maps[cell][0]
     centre = q_fine.uv[q_fine.structure].mean(0)
     ranked = []
+    offsets = np.arange(-1.0, 1.01, 0.5)
     for g in coarse:
-        fine = free_space_peaks(*maps[cell], cell,
-                                g.yaw_deg + np.arange(-1.0, 1.01, 0.5) * c.yaw_step_deg / 2,
-                                g.scale * np.exp(np.arange(-1.0, 1.01, 0.5) * step / 2), count=1,
-                                near=(g.A[:, :2] @ centre + g.A[:, 2], 3 * cell))
+        yaws_g, scales_g = g.yaw_deg + offsets * c.yaw_step_deg / 2, g.scale * np.exp(offsets * step / 2)
+        near_g = (g.A[:, :2] @ centre + g.A[:, 2], 3 * cell)
+        if c.refine_descent:
+            fine = free_space_peaks(*maps[cell], cell, yaws_g, np.array([g.scale]), count=1, near=near_g)
+            yaw = fine[0].yaw_deg if fine else g.yaw_deg
+            fine += free_space_peaks(*maps[cell], cell, np.array([yaw]), np.delete(scales_g, 2), count=1,
+                                     near=near_g)
+            fine.sort(key=lambda a: -a.score)
+        else:
+            fine = free_space_peaks(*maps[cell], cell, yaws_g, scales_g, count=1, near=near_g)
         best = fine[0] if fine else g
         G = np.eye(4)
         G[:2, :2], G[:2, 3] = best.A[:, :2], best.A[:, 2]

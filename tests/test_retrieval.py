@@ -187,6 +187,23 @@ def test_vocabulary_tile_vlads_and_candidates(rng):
     assert cands[0].match == 1 and cands[0].votes == 5
 
 
+def test_tile_vlads_equal_each_tiles_own_vlad(rng):
+    """tile_vlads computes every tile's window at once (block sums, integral image): the same as vlad() of each
+    window's cells, including the cells beyond the last whole tile and windows clipped at the border."""
+    vocab = Vocabulary(rng.normal(size=(6, 4)), 1)
+    for (rows, cols), c, context in (((9, 7), 2, 3), ((17, 9), 4, 5), ((8, 8), 2, 1)):
+        cells = rng.normal(size=(rows, cols, 4)).astype(np.float32)
+        cells[0] = 0.0  # empty cells
+        cells[:, 1] = vocab.centroids[2]  # cells on a word: no residual
+        r = (context // 2) * c
+        out = tile_vlads(cells, vocab, c, context)
+        assert out.shape == (rows // c, cols // c, 24)
+        for i in range(rows // c):
+            for j in range(cols // c):
+                window = cells[max(0, i * c - r):min(rows, i * c + c + r), max(0, j * c - r):min(cols, j * c + c + r)]
+                assert np.allclose(out[i, j], vlad(window.reshape(-1, 4), vocab), atol=1e-5), (rows, c, i, j)
+
+
 def test_dinov2_encoder_with_a_tiny_model(rng):
     from vggt_slam_pp.models import build_dinov2
     from vggt_slam_pp.retrieval import DinoV2Encoder

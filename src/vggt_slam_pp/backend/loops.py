@@ -101,7 +101,7 @@ class LoopCloser:
             old = [j for j in m.with_points() if j < sid - recent
                    and (m.index_new or m.in_gallery(j))]  # localisation only: the map's submaps
             if old:
-                d = np.array([np.linalg.norm(m.centroid_world(j) - here) for j in old])
+                d = np.linalg.norm(m.centroids_world(old) - here, axis=1)
                 radius = self.config.proximity_radius_tiles * self.tile_size
                 # or as far as the estimate can have drifted between the two through the graph, where that is
                 # within a limit (beyond it the radius holds: the nearest in the estimate is no better a guess)

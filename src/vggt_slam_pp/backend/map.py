@@ -239,7 +239,16 @@ class Map:
 
     def centroid_world(self, submap_id: int) -> np.ndarray:
         """The submap's point centroid [3] at its current pose."""
-        return transform_points(self.graph.poses[submap_id], self._centroid[submap_id][None])[0]
+        return self.centroids_world([submap_id])[0]
+
+    def centroids_world(self, submap_ids: list[int]) -> np.ndarray:
+        """The point centroids [len(submap_ids), 3] of those submaps at their current poses (at once: a query
+        measures its distance to every earlier submap)."""
+        if not submap_ids:
+            return np.zeros((0, 3))
+        T = np.stack([self.graph.poses[i] for i in submap_ids])
+        c = np.stack([self._centroid[i] for i in submap_ids])
+        return np.einsum("nij,nj->ni", T[:, :3, :3], c) + T[:, :3, 3]
 
     def has_points(self, submap_id: int) -> bool:
         return submap_id in self._centroid

@@ -203,7 +203,8 @@ def planar_ransac(src_uv: np.ndarray, dst_uv: np.ndarray, radius: float, iterati
     if n < 2:
         return best_T, best
     rng = np.random.default_rng(seed)
-    a, b = np.array([rng.choice(n, 2, replace=False) for _ in range(iterations)]).reshape(-1, 2).T
+    a = rng.integers(0, n, iterations)
+    b = (a + rng.integers(1, n, iterations)) % n  # a pair of distinct points, uniformly
     # every hypothesis at once: the motion that takes pair (a, b) of src onto dst, if their lengths agree
     ds, dd = src_uv[b] - src_uv[a], dst_uv[b] - dst_uv[a]
     len_s, len_d = np.linalg.norm(ds, axis=1), np.linalg.norm(dd, axis=1)

@@ -72,9 +72,8 @@ def layer_structure(layer: DemLayer, tile_size: float, config: GeometryConfig | 
 def _image(uv: np.ndarray, w: np.ndarray, lo: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
     ij = np.floor((uv - lo) / cell).astype(np.int64)
     keep = np.all((ij >= 0) & (ij < np.asarray(shape)), axis=1)
-    img = np.zeros(shape, np.float32)
-    np.add.at(img, (ij[keep, 0], ij[keep, 1]), w[keep])
-    img = np.minimum(img, 3.0)  # a cell with >= 3 structure pixels counts fully: walls do not outweigh posts
+    img = np.bincount(ij[keep, 0] * shape[1] + ij[keep, 1], w[keep], shape[0] * shape[1]).reshape(shape)
+    img = np.minimum(img, 3.0).astype(np.float32)  # a cell with >= 3 structure pixels counts fully: walls do not outweigh posts
     return cv2.GaussianBlur(img, (0, 0), 1.0)
 
 

@@ -72,19 +72,36 @@ def vlad(features: np.ndarray, vocab: Vocabulary, assignments: np.ndarray | None
 def tile_vlads(cell_features: np.ndarray, vocab: Vocabulary, cells_per_tile: int = 2,
                context_tiles: int = 3) -> np.ndarray:
     """VLAD of every tile of a layer over the cells of its ``context_tiles`` x ``context_tiles``
-    neighbourhood: [Tr, Tc, k*D]. (A 2x2-cell tile alone has too few features for a VLAD.)"""
+    neighbourhood: [Tr, Tc, k*D]. (A 2x2-cell tile alone has too few features for a VLAD.)
+
+    The same as :func:`vlad` of each tile's window of ``cell_features`` [rows, cols, D], computed at once: every
+    cell's residual to its word summed per block of ``cells_per_tile`` x ``cells_per_tile`` cells (a window is a
+    run of whole blocks; the cells beyond the last tile are one more row and column of blocks), then over the
+    windows through an integral image of the blocks."""
     rows, cols, D = cell_features.shape
-    c = cells_per_tile
+    c, k = cells_per_tile, vocab.k
     tr, tc = rows // c, cols // c
-    assign = vocab.assign(cell_features.reshape(-1, D)).reshape(rows, cols)
-    r = (context_tiles // 2) * c
-    out = np.zeros((tr, tc, vocab.k * D), np.float32)
-    for i in range(tr):
-        for j in range(tc):
-            y0, y1 = max(0, i * c - r), min(rows, i * c + c + r)
-            x0, x1 = max(0, j * c - r), min(cols, j * c + c + r)
-            out[i, j] = vlad(cell_features[y0:y1, x0:x1].reshape(-1, D), vocab, assign[y0:y1, x0:x1].reshape(-1))
-    return out
+    if tr == 0 or tc == 0:
+        return np.zeros((tr, tc, k * D), np.float32)
+    x = np.asarray(cell_features, np.float32).reshape(-1, D)
+    assign = vocab.assign(x)
+    block = ((np.arange(rows) // c)[:, None] * (tc + 1) + (np.arange(cols) // c)[None]).reshape(-1)
+    slot = ((block * k + assign) * D)[:, None] + np.arange(D)[None]  # each residual's entry in the block sums
+    integral = np.zeros((tr + 2, tc + 2, k, D), np.float64)
+    integral[1:, 1:] = np.bincount(slot.reshape(-1), (x - vocab.centroids[assign]).reshape(-1).astype(np.float64),
+                                   (tr + 1) * (tc + 1) * k * D).reshape(tr + 1, tc + 1, k, D)
+    for i in range(2, tr + 2):  # cumulative sums down, then across (numpy's cumsum over a leading axis is slow)
+        integral[i] += integral[i - 1]
+    for j in range(2, tc + 2):
+        integral[:, j] += integral[:, j - 1]
+    h = context_tiles // 2
+    i0, i1 = np.maximum(0, np.arange(tr) - h)[:, None], np.minimum(tr + 1, np.arange(tr) + h + 1)[:, None]
+    j0, j1 = np.maximum(0, np.arange(tc) - h)[None], np.minimum(tc + 1, np.arange(tc) + h + 1)[None]
+    out = integral[i1, j1] - integral[i0, j1] - integral[i1, j0] + integral[i0, j0]  # [tr, tc, k, D]
+    n = np.linalg.norm(out, axis=3, keepdims=True)
+    out = np.where(n > 1e-9, out / np.maximum(n, 1e-12), 0.0).reshape(tr, tc, k * D)
+    n = np.linalg.norm(out, axis=2, keepdims=True)
+    return np.where(n > 0, out / np.maximum(n, 1e-300), out).astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -712,6 +712,9 @@ def test_worker_duty_yields_while_its_latency_is_short_and_rises_as_it_falls_beh
     assert _duty(WorkerConfig(duty=0.25, catch_up_lag=0), 1.0, 10_000) == 0.25  # no catch-up lag: latency alone
     assert _duty(WorkerConfig(duty=0.25, yield_latency_s=0.0), 0.5, 1) == 1.0  # 0 s: yields only when idle
     assert _duty(WorkerConfig(duty=1.0), 0.0, 0) == 1.0  # duty 1: never pauses
+    default = WorkerConfig(duty=0.25)  # no yield latency (the default): the duty holds at any latency
+    assert default.yield_latency_s is None
+    assert _duty(default, 1000.0, 10) == 0.25 and _duty(default, 1000.0, 65) == 1.0
 
 
 @pytest.mark.timeout(900)

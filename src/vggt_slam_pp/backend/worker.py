@@ -61,9 +61,10 @@ class WorkerConfig:
     # and its latency is within ``yield_latency_s``: after each submap it pauses for (1 / duty - 1) x that submap's
     # time. Even at idle priority a busy worker slows a 2-core front-end (every stage 15-20 % at a duty of 0.5,
     # session 28); 1.0: never pause. Once the front-end has finished it runs without pauses
-    yield_latency_s: float = 10.0  # the latency (how long the oldest waiting submap has waited) up to which the
-    # worker yields to the front-end at ``duty``; beyond it its duty rises linearly to 1 at twice this latency,
-    # and it never pauses while more than half the catch-up lag waits (_duty)
+    yield_latency_s: float | None = None  # a latency (how long the oldest waiting submap has waited) up to which
+    # the worker yields to the front-end at ``duty``, beyond it its duty rising linearly to 1 at twice this latency
+    # (fresher live poses, a slower front-end); None: no such rise. It never pauses while more than half the
+    # catch-up lag waits (_duty)
 
 
 def _limit_threads(n: int, with_torch: bool) -> None:
@@ -120,13 +121,15 @@ def _build(config: BackendConfig, folder: str | Path, prior_map: tuple[str, bool
 
 
 def _duty(worker: WorkerConfig, latency_s: float, backlog: int) -> float:
-    """The share of the wall time a worker works while the front-end streams: ``worker.duty`` while the oldest
-    waiting submap has waited at most ``yield_latency_s`` (``latency_s``), rising linearly to 1 at twice that, and 1
-    while more than half the catch-up lag waits. A short run's back-end work mostly waits for the end of the
-    stream (the front-end keeps its speed); a long run's back-end works harder the further it falls behind
-    (docs/backend.md, "Worker duty")."""
+    """The share of the wall time a worker works while the front-end streams: ``worker.duty``, and 1 while more
+    than half the catch-up lag waits; with a ``yield_latency_s``, rising linearly from ``duty`` once the oldest
+    waiting submap has waited that long (``latency_s``) to 1 at twice that. A short run's back-end work mostly
+    waits for the end of the stream (the front-end keeps its speed); a long run's back-end works harder once it
+    falls behind (docs/backend.md, "Worker duty")."""
     if worker.catch_up_lag > 0 and backlog > worker.catch_up_lag // 2:
         return 1.0
+    if worker.yield_latency_s is None:
+        return worker.duty
     late = (latency_s - worker.yield_latency_s) / max(worker.yield_latency_s, 1e-9)
     return worker.duty + (1.0 - worker.duty) * min(max(late, 0.0), 1.0)
 
@@ -234,7 +237,7 @@ class BackendWorker:
             raise BackendError(f"unknown back-end mode {mode!r}; choose one of {', '.join(MODES)}")
         if not 0 < worker.duty <= 1:
             raise BackendError(f"the worker's duty must be in (0, 1], got {worker.duty}")
-        if not worker.yield_latency_s >= 0:
+        if worker.yield_latency_s is not None and not worker.yield_latency_s >= 0:
             raise BackendError(f"the worker's yield latency must be >= 0 s, got {worker.yield_latency_s}")
         self.config, self.worker_config, self.mode = config, worker, mode
         self.folder = Path(folder)

@@ -422,32 +422,6 @@ def test_search_refined_by_descent_finds_the_grids_alignment(rng, monkeypatch):
         assert per_peak == {False: 25, True: 9}
 
 
-def test_a_search_rasterises_its_match_once_and_scores_the_same(rng):
-    """MatchRasters: the match's rasters made once with the largest margin a search needs; a call that needs
-    less reads a window of them, equal to the rasters made with its own margin, and scores the same peaks."""
-    from vggt_slam_pp.backend.search import CellMap, MatchRasters, _pad, free_space_peaks
-
-    world = _place(rng)
-    seen_again, _ = _revisit(25, (4, -3), 1.1, rng, world)
-    hue_q, hue_m = rng.normal(size=(len(seen_again), 2)) * 0.3, rng.normal(size=(len(world), 2)) * 0.3
-    for hues in ((None, None), (hue_q, hue_m)):
-        query, match = CellMap.of(seen_again, 2.0, 0.3, hues[0]), CellMap.of(world, 2.0, 0.3, hues[1])
-        coloured = query.coloured and match.coloured
-        assert coloured == (hues[0] is not None)
-        shared = MatchRasters(match, 2.0, _pad(query, 2.0, 1.3), coloured)
-        for scale, near in ((0.9, None), (1.0, (np.array([10.0, 5.0]), 6.0)), (1.2, None)):
-            own = MatchRasters(match, 2.0, _pad(query, 2.0, scale), coloured)
-            assert own.pad < shared.pad
-            for a, b in zip(shared.window(own.pad), own.images, strict=True):
-                assert np.array_equal(a, b)
-            yaws = np.arange(-60.0, 61.0, 12.0)
-            alone = free_space_peaks(query, match, 2.0, yaws, np.array([scale]), 3, near=near)
-            reused = free_space_peaks(query, match, 2.0, yaws, np.array([scale]), 3, near=near, rasters=shared)
-            assert len(alone) == len(reused) > 0
-            for a, b in zip(alone, reused, strict=True):
-                assert a.score == b.score and a.yaw_deg == b.yaw_deg and np.allclose(a.A, b.A, atol=1e-9)
-
-
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):
     from vggt_slam_pp.backend.search import free_space_agreement
 

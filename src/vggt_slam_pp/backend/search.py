@@ -307,65 +307,31 @@ class Alignment:
     scale: float
 
 
-class MatchRasters:
-    """A match's cells as :func:`free_space_peaks` scores against them, rasterised once at ``cell`` with ``pad``
-    cells of margin, each cell centre mid-pixel; a call that needs less margin reads a window of them (equal to
-    the raster made with that margin). A search scores one match at many scales and peaks."""
-
-    def __init__(self, match: CellMap, cell: float, pad: int, coloured: bool) -> None:
-        self.pad, self.coloured = pad, coloured
-        self.lo = match.uv.min(0) - (pad + 0.5) * cell  # the cell centres mid-pixel: their pixels are exact
-        shape = _raster_shape(match, cell, pad)
-        struct = _raster(match.uv[match.structure], self.lo, cell, shape)
-        # the query's structure scores +1 near the match's structure and -1 on its clear ground (one correlation);
-        # the match's structure -1 on the query's clear ground
-        self.images = [struct, cv2.dilate(struct, _KERNEL) - _clear(_raster(match.uv, self.lo, cell, shape), struct)]
-        if coloured:  # agreements weighted by 1 - |a||b| + a.b (colour_match before its clipping)
-            hue = _near_hue(_hue_raster(match.uv[match.structure], match.hue[match.structure], self.lo, cell, shape))
-            self.images += [np.ascontiguousarray(hue[..., 0]), np.ascontiguousarray(hue[..., 1]),
-                            np.linalg.norm(hue, axis=-1).astype(np.float32)]
-
-    def window(self, pad: int) -> list[np.ndarray]:
-        """The images as rasterised with ``pad`` (<= :attr:`pad`) cells of margin."""
-        k = self.pad - pad
-        return [im[k:im.shape[0] - k, k:im.shape[1] - k] for im in self.images]
-
-
-def _raster_shape(cells: CellMap, cell: float, pad: int) -> tuple[int, int]:
-    """The shape of a raster of ``cells`` (made at ``cell``: their centres lie a whole number of cells apart)
-    with ``pad`` empty cells on every side."""
-    n = np.round((cells.uv.max(0) - cells.uv.min(0)) / cell).astype(int)
-    return int(n[0]) + 2 * pad + 1, int(n[1]) + 2 * pad + 1
-
-
-def _pad(query: CellMap, cell: float, scale: float) -> int:
-    """The margin (cells) around a match's raster that lets ``query`` at ``scale`` hang over every side."""
-    centre = query.uv[query.structure].mean(0)
-    reach = float(np.max(np.linalg.norm(query.uv - centre, axis=1))) * scale + cell
-    return int(np.ceil(2 * reach / cell)) + 1
-
-
 def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.ndarray, scales: np.ndarray,
                      count: int = 3, near: tuple[np.ndarray, float] | None = None,
-                     max_pixels: int = 4_000_000, rasters: MatchRasters | None = None) -> list[Alignment]:
+                     max_pixels: int = 4_000_000) -> list[Alignment]:
     """The ``count`` best distinct alignments of ``query``'s cells onto ``match``'s over every yaw in
     ``yaws_deg``, scale in ``scales`` (about the query's structure centroid) and every overlapping shift,
     by ``agreements - conflicts`` (module docstring), best first. ``near`` = (point [2], radius) keeps
     only shifts that put the query's centroid within ``radius`` of ``point``. Alternatives closer than
-    three cells (at a yaw within 20 deg) to a better one are dropped. ``rasters``: the match's, made at this
-    ``cell`` with at least the margin these scales need (else they are made here)."""
+    three cells (at a yaw within 20 deg) to a better one are dropped."""
     if not query.structure.any() or not match.structure.any():
         return []
     centre = query.uv[query.structure].mean(0)
-    pad = _pad(query, cell, float(np.max(scales)))
-    m_shape = _raster_shape(match, cell, pad)
+    reach = float(np.max(np.linalg.norm(query.uv - centre, axis=1))) * float(np.max(scales)) + cell
+    pad = int(np.ceil(2 * reach / cell)) + 1
+    m_lo = match.uv.min(0) - pad * cell
+    m_shape = tuple(int(x) for x in np.ceil((match.uv.max(0) - m_lo) / cell) + pad + 1)
     if m_shape[0] * m_shape[1] > max_pixels:  # footprints this large are not one place
         return []
+    b_struct = _raster(match.uv[match.structure], m_lo, cell, m_shape)
+    b_near = cv2.dilate(b_struct, _KERNEL)
+    b_clear = _clear(_raster(match.uv, m_lo, cell, m_shape), b_struct)
     coloured = query.coloured and match.coloured
-    if rasters is None or rasters.pad < pad or rasters.coloured != coloured:
-        rasters = MatchRasters(match, cell, pad, coloured)
-    b_struct, b_near_or_clear, *b_colour = rasters.window(pad)
-    m_lo, m_shape = rasters.lo + (rasters.pad - pad) * cell, b_struct.shape  # this margin's raster
+    if coloured:  # agreements weighted by 1 - |a||b| + a.b (colour_match before its clipping)
+        b_hue = _near_hue(_hue_raster(match.uv[match.structure], match.hue[match.structure], m_lo, cell, m_shape))
+        b_colour = [np.ascontiguousarray(b_hue[..., 0]), np.ascontiguousarray(b_hue[..., 1]),
+                    np.linalg.norm(b_hue, axis=-1).astype(np.float32)]
     found: list[Alignment] = []
     for s in scales:
         for yaw in yaws_deg:
@@ -385,7 +351,8 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
             a_struct = _raster_cells(ij[query.structure], shape)
             a_clear = _clear(_raster_cells(ij, shape), a_struct)
             win = (slice(i0[0], i1[0] + shape[0]), slice(i0[1], i1[1] + shape[1]))
-            score = (cv2.matchTemplate(b_near_or_clear[win], a_struct, cv2.TM_CCORR)
+            score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
+                     - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
                      - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
             if coloured:
                 hue = _hue_raster_cells(ij[query.structure], query.hue[query.structure], shape)
@@ -468,37 +435,25 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
         at = P[:2, :2] @ (centre / s_p) + P[:2, 3]  # where the prior puts the query's structure centroid
         return at, float(max_shift)
 
-    def rasters(k: float, scale: float) -> MatchRasters | None:
-        """The match's rasters at cell ``k`` for every call of this search (scales up to ``scale``)."""
-        q, m = maps[k]
-        if not q.structure.any() or not m.structure.any():
-            return None
-        pad = _pad(q, k, scale)
-        shape = _raster_shape(m, k, pad)
-        return MatchRasters(m, k, pad, q.coloured and m.coloured) if shape[0] * shape[1] <= 4_000_000 else None
-
-    coarse_rasters = rasters(2 * cell, float(scales.max()))
     coarse = [g for sc in scales
               for g in free_space_peaks(*maps[2 * cell], 2 * cell, yaws, np.array([sc]), c.candidates_per_scale,
-                                        near=near(maps[2 * cell][0]), rasters=coarse_rasters)]
+                                        near=near(maps[2 * cell][0]))]
     coarse = sorted(coarse, key=lambda g: -g.score)[: c.refine]
     q_fine = maps[cell][0]
     centre = q_fine.uv[q_fine.structure].mean(0)
     ranked = []
     offsets = np.arange(-1.0, 1.01, 0.5)
-    fine_rasters = rasters(cell, max(g.scale for g in coarse) * float(np.exp(step / 2))) if coarse else None
     for g in coarse:
         yaws_g, scales_g = g.yaw_deg + offsets * c.yaw_step_deg / 2, g.scale * np.exp(offsets * step / 2)
         near_g = (g.A[:, :2] @ centre + g.A[:, 2], 3 * cell)
         if c.refine_descent:
-            fine = free_space_peaks(*maps[cell], cell, yaws_g, np.array([g.scale]), count=1, near=near_g,
-                                    rasters=fine_rasters)
+            fine = free_space_peaks(*maps[cell], cell, yaws_g, np.array([g.scale]), count=1, near=near_g)
             yaw = fine[0].yaw_deg if fine else g.yaw_deg
             fine += free_space_peaks(*maps[cell], cell, np.array([yaw]), np.delete(scales_g, 2), count=1,
-                                     near=near_g, rasters=fine_rasters)
+                                     near=near_g)
             fine.sort(key=lambda a: -a.score)
         else:
-            fine = free_space_peaks(*maps[cell], cell, yaws_g, scales_g, count=1, near=near_g, rasters=fine_rasters)
+            fine = free_space_peaks(*maps[cell], cell, yaws_g, scales_g, count=1, near=near_g)
         best = fine[0] if fine else g
         G = np.eye(4)
         G[:2, :2], G[:2, 3] = best.A[:, :2], best.A[:, 2]

@@ -58,7 +58,7 @@ class WorkerConfig:
     priority: str = "idle"  # "idle": CPU time only when the front-end leaves some (Linux SCHED_IDLE,
     # else nice 19); "low": nice 10; "normal"
     duty: float = 0.25  # share of the wall time the worker may work while the front-end is still streaming
-    # and its latency is within ``yield_latency_s``: after each submap it pauses for (1 / duty - 1) x that submap's
+    # (and not half its catch-up lag behind, _duty): after each submap it pauses for (1 / duty - 1) x that submap's
     # time. Even at idle priority a busy worker slows a 2-core front-end (every stage 15-20 % at a duty of 0.5,
     # session 28); 1.0: never pause. Once the front-end has finished it runs without pauses
     yield_latency_s: float | None = None  # a latency (how long the oldest waiting submap has waited) up to which

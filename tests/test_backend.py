@@ -1103,6 +1103,7 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
                 "backend_cpu_s_per_submap_last100", "rss_mb_at_50", "growth"):  # the new keys and the old ones
         assert key in out, key
     assert isinstance(out["loops_off_truth"], list)
+    assert out["loops_verified"] >= out["loops_accepted"] and 0 <= out["verified_off_truth"] <= out["loops_verified"]
     assert out["peak_rss_mb_all"] >= out["peak_rss_mb"] > 0 and out["false_loops"] >= 0
     assert 0 <= out["frontend_submit_wait_fraction"] < 0.5 and out["backend_max_lag_submaps"] >= 0
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
@@ -1146,6 +1147,13 @@ def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():
     wrong = _wrong_loops(graph, source)
     assert [(q, m) for q, m, *_ in wrong] == [(2, 1)] and 9.5 < wrong[0][2] < 10.5
     assert _wrong_loops(graph, source, source, n_map=0) == []  # across a map and a recording: none here
+    # every verified candidate (accepted or waiting for a partner: those with a relative pose), not only the edges
+    graph["loop_candidates"] = [{"query": 2, "match": 0, "accepted": True, "T_match_query": right.tolist()},
+                                {"query": 2, "match": 1, "accepted": False, "T_match_query": turned.tolist()},
+                                {"query": 1, "match": 0, "accepted": False}]  # rejected: no relative pose
+    assert [(q, m) for q, m, *_ in _wrong_loops(graph, source, verified=True)] == [(2, 1)]
+    graph["loop_candidates"][0]["T_match_query"] = turned.tolist()  # now off by the turn and 6 m
+    assert [(q, m) for q, m, *_ in _wrong_loops(graph, source, verified=True)] == [(2, 0), (2, 1)]
 
 
 def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, rng):

@@ -159,13 +159,15 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch, tmp_
 
     cov = {"scenes": {}, "covisibility_recall": None, "covisibility_recall_votes": None, "vpr_top1_precision": None}
     monkeypatch.setattr(benchmarks, "bench_covisibility", fake("covisibility", cov))
-    loops = {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0, "loops_off_truth": 2}
+    loops = {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0, "loops_off_truth": 2,
+             "loops_verified": 9, "verified_off_truth": 4}
     monkeypatch.setattr(benchmarks, "bench_loops", fake("loops", loops))
     code, out, _ = _run(capsys, "bench", "covisibility", "--seed", 3, "--json")
     assert code == 0 and seen["covisibility"]["seed"] == 3 and json.loads(out)["scenes"] == {}
     assert _run(capsys, "bench", "loops", "--json")[0] == 0 and seen["loops"]["seed"] == 0
     code, out, err = _run(capsys, "bench", "loops")
     assert code == 0 and "false loops 0 (target 0)" in out + err and "off the truth 2" in out + err
+    assert "verified 9, of which off the truth 4" in out + err
     row = {"submaps": 15, "ate_odometry": 0.2, "drift_pct_path": 0.08, "ate_final": 0.1, "ate_reduction": 0.5,
            "loops_accepted": 3, "false_loops": 0, "footprint_false_loops": 1, "backend_s_per_submap": 9.0, "fps": 4.0}
     images = {"scenarios": {"laps": row}, "backbone": "colmap", "mean_ate_reduction": 0.5, "false_loops": 0,

@@ -187,3 +187,42 @@ def test_a_live_viewer_that_died_never_blocks_the_run():
         viewer.submap(i, big, None, np.zeros((2, 3)), [0, 1], np.eye(4))
         viewer.poses({i: np.eye(4)})
     assert viewer.close() is None and not viewer.alive()
+
+
+def test_the_report_draws_a_long_runs_dem_reduced():
+    """A city-scale DEM is drawn as block means at most 1,200 px on its long side (drawing every pixel of a
+    1,000-submap run's DEM took the report to about 1 GB); blocks without a height stay empty."""
+    from vggt_slam_pp.viz.report import display_dem
+
+    heights = np.full((2500, 5000), np.nan, np.float32)
+    heights[:, :2500] = np.arange(2500, dtype=np.float32)[None, :] % 5  # 0 1 2 3 4 along each row
+    heights[:100, :5] = 7.0
+    small, mpp = display_dem(heights, 0.25)
+    assert small.shape == (500, 1000) and mpp == 1.25  # k = 5
+    assert np.allclose(small[20:, :500], 2.0) and np.allclose(small[:20, 0], 7.0)  # block means
+    assert np.isnan(small[:, 500:]).all()  # nothing seen there
+    same, mpp_same = display_dem(heights[:100, :1200], 0.25)
+    assert same.shape == (100, 1200) and mpp_same == 0.25  # small enough already: untouched
+
+
+def test_a_runs_peak_memory_includes_writing_its_report(tmp_path, monkeypatch):
+    """``peak_rss_mb`` in report.json is taken after report.html is written: the report is output writing."""
+    import json
+
+    import vggt_slam_pp.viz.report as report_module
+    from vggt_slam_pp.resources import rss_mb
+
+    seen = {}
+    write = report_module.write_report
+
+    def heavy_report(run_dir, out=None):
+        before = json.loads((run_dir / "report.json").read_text())["peak_rss_mb"]  # both processes' peaks so far
+        block = np.ones(int((before - rss_mb() + 200) * 2**20) // 8)  # this process alone 200 MiB past it
+        seen["rss"], seen["before"] = rss_mb(), before
+        del block
+        return write(run_dir, out)
+
+    monkeypatch.setattr(report_module, "write_report", heavy_report)
+    assert main(["demo", "--frames", "120", "--width", "96", "--height", "72", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert seen["rss"] > seen["before"] + 150 and report["peak_rss_mb"] >= seen["rss"]

@@ -142,6 +142,10 @@ def write_run_outputs(out: Path, source, config, result: FrontendResult | None, 
             write_report(out)
         except Exception as exc:  # noqa: BLE001 - the report is for people: it must never lose a run's outputs
             log.warning("report.html not written: %s", exc)
+        peak = peak_rss_mb() + backend_peak  # the run's peak includes writing the report (report.html shows the
+        if peak > report["peak_rss_mb"]:  # figure before it)
+            report["peak_rss_mb"] = peak
+            atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if stats.error is None and backend is not None and write_map:
         first = len(prior.submaps) if prior is not None else 0
         write_manifest(out, first + len(result.submaps))  # last: the folder is now a complete map

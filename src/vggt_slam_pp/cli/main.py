@@ -511,7 +511,9 @@ def _loops_table(result: dict) -> str:
                     if colmap else
                 f", lowest fps ratio on/off {result['min_fps_ratio']:.2f} (target >= 0.9)"
                 + (f"; loops > 5 deg or 5 m off the truth {result['loops_off_truth']}" if "loops_off_truth" in result
-                   else "")))
+                   else "")
+                + (f"; verified {result['loops_verified']}, of which off the truth {result['verified_off_truth']} "
+                   "(before the consistency gate)" if "verified_off_truth" in result else "")))
     return "\n".join(rows)
 
 

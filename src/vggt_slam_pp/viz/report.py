@@ -154,12 +154,31 @@ def _rpe_figure(run: RunFolder):
     return fig
 
 
+def display_dem(heights: np.ndarray, mpp: float, max_px: int = 1200) -> tuple[np.ndarray, float]:
+    """A DEM [H,W] reduced for a figure: the mean of each k x k block of pixels (k the least that brings the long
+    side to at most ``max_px``; a block with no height stays empty), and its metres per pixel. A long run's DEM
+    has tens of millions of pixels, and drawing them all took the report to about 1 GB."""
+    k = int(np.ceil(max(heights.shape) / max_px))
+    if k <= 1:
+        return heights, mpp
+    H, W = heights.shape
+    padded = np.full((-(-H // k) * k, -(-W // k) * k), np.nan, np.float32)
+    padded[:H, :W] = heights
+    blocks = padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k)
+    valid = np.isfinite(blocks)
+    count = valid.sum(axis=(1, 3))
+    total = np.where(valid, blocks, np.float32(0)).sum(axis=(1, 3))
+    out = np.full(count.shape, np.nan, np.float32)
+    np.divide(total, count, out=out, where=count > 0)
+    return out, mpp * k
+
+
 def _dem_figure(run: RunFolder):
     import matplotlib.pyplot as plt
 
     from vggt_slam_pp.dem.images import hillshade_rgb
 
-    heights, mpp = run.dem["heights"], run.dem["mpp"]
+    heights, mpp = display_dem(run.dem["heights"], run.dem["mpp"])
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5.5))
     extent = (0, heights.shape[1] * mpp, 0, heights.shape[0] * mpp)  # v up, as a map seen from above
     finite = heights[np.isfinite(heights)]

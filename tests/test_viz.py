@@ -203,6 +203,8 @@ def test_the_report_draws_a_long_runs_dem_reduced():
     assert np.isnan(small[:, 500:]).all()  # nothing seen there
     same, mpp_same = display_dem(heights[:100, :1200], 0.25)
     assert same.shape == (100, 1200) and mpp_same == 0.25  # small enough already: untouched
+    odd, _ = display_dem(np.arange(1201 * 3, dtype=np.float32).reshape(1201, 3), 1.0)  # k = 2: a partial last block
+    assert odd.shape == (601, 2) and odd[-1, 0] == np.mean([3600, 3601]) and odd[-1, 1] == 3602
 
 
 def test_a_runs_peak_memory_includes_writing_its_report(tmp_path, monkeypatch):

@@ -162,6 +162,12 @@ def _nodes_ate(source, nodes: list[dict]) -> float:
     return float(np.sqrt(np.mean(np.sum((transform_points(T, a) - b) ** 2, axis=1))))
 
 
+def _verified_loops(graph: dict) -> list[dict]:
+    """``graph.json``'s verified loop candidates: those with a relative pose (accepted, and verified ones that found
+    no consistent partner or that the final solve dropped)."""
+    return [c for c in graph["loop_candidates"] if "T_match_query" in c]
+
+
 def _wrong_loops(graph: dict, first, second=None, n_map: int = 0, max_deg: float = 5.0, max_m: float = 5.0,
                  verified: bool = False) -> list:
     """Accepted loops between a recording (submaps ``>= n_map``, frames of ``second``) and its map (frames
@@ -183,7 +189,7 @@ def _wrong_loops(graph: dict, first, second=None, n_map: int = 0, max_deg: float
         return truth[i >= n_map][int(nodes[i]["frames"][0])]
 
     if verified:
-        loops = [(c["match"], c["query"], c["T_match_query"]) for c in graph["loop_candidates"] if "T_match_query" in c]
+        loops = [(c["match"], c["query"], c["T_match_query"]) for c in _verified_loops(graph)]
     else:
         loops = [(e["from"], e["to"], e["T"]) for e in graph["edges"] if e["kind"] == "loop"]
     wrong = []
@@ -346,7 +352,7 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
             # beside the footprint rule: accepted loops more than 5 deg or 5 m off the ground truth's relative pose
             "loops_off_truth": _wrong_loops(graph, source),
             # what verification alone lets through, before the consistency gate: every verified candidate
-            "loops_verified": sum("T_match_query" in c for c in graph["loop_candidates"]),
+            "loops_verified": len(_verified_loops(graph)),
             "verified_off_truth": _wrong_loops(graph, source, verified=True),
             "backend_s_per_submap": on["backend_s_per_submap"],
             "frontend_fps_backend_on": float(np.median(fps_on)), "frontend_fps_backend_off": float(np.median(fps_off)),
@@ -731,7 +737,7 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
             # submaps that share little ground can still be right, and one that shares much can be wrong)
             "loops_off_truth": _wrong_loops(graph, source),
             # verified candidates (accepted, or waiting for a partner) and those of them off the pose truth
-            "loops_verified": sum("T_match_query" in c for c in graph["loop_candidates"]),
+            "loops_verified": len(_verified_loops(graph)),
             "verified_off_truth": len(_wrong_loops(graph, source, verified=True))}
 
 

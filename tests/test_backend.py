@@ -1090,6 +1090,14 @@ def test_a_slow_backend_never_blocks_the_frontend_and_defers_queries_without_dro
     cpu = np.array(report["backend_cpu_seconds_per_submap"])
     assert len(cpu) == len(wall) == report["submaps"] and (wall >= 0.4).all()
     assert (cpu < wall - 0.3).all() and report["backend_cpu_s_per_submap"] > 0  # CPU time: the sleep is not work
+    stages = report["backend_stage_seconds_per_submap"]  # where each submap's time went, its deferred query included
+    assert set(stages) == {"covisibility_s", "registration_s", "optimization_s", "relocate_s"}
+    by_stage = np.array([stages[k] for k in sorted(stages)])
+    assert by_stage.shape == (4, len(wall)) and (by_stage >= 0).all()
+    assert (by_stage.sum(0) <= wall + 1e-3).all() and (by_stage.sum(0) < wall - 0.3).all()  # the sleep is no stage
+    assert by_stage[sorted(stages).index("covisibility_s"), sorted(deferred)].min() > 0  # the deferred queries' share
+    for k in ("covisibility_s", "registration_s"):  # all of theirs is some submap's (the final solve is no submap's)
+        assert abs(sum(stages[k]) - report["backend_timings"][k]) < 1e-4 * len(wall) + 1e-6
 
 
 @pytest.mark.timeout(600)
@@ -1109,6 +1117,7 @@ def test_bench_memory_reports_the_long_run_figures(tmp_path):
     assert out["backend_s_per_submap_first100"] is None  # fewer than 200 submaps: not measured
     assert out["backend_cpu_s_per_submap_last100"] is None
     assert len(out["backend_cpu_s_per_100"]) == 1 and out["backend_cpu_s_per_100"][0] > 0
+    assert out["backend_stage_s_first100"] is None and out["backend_stage_s_last100"] is None
 
 
 @pytest.mark.timeout(600)

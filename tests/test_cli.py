@@ -180,13 +180,16 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch, tmp_
            "backend_s_per_submap_first100": 0.25, "backend_s_per_submap_last100": 0.7,
            "backend_cpu_s_per_submap_first100": 0.2, "backend_cpu_s_per_submap_last100": 0.68,
            "peak_rss_mb_all": 900.0, "frontend_submit_wait_fraction": 0.036, "backend_max_lag_submaps": 140,
-           "backend_queries_deferred": 300, "ate_reduction": 0.88, "false_loops": 0}
+           "backend_queries_deferred": 300, "ate_reduction": 0.88, "false_loops": 0,
+           "backend_stage_s_first100": {"covisibility_s": 0.35, "registration_s": 0.23},
+           "backend_stage_s_last100": {"covisibility_s": 0.19, "registration_s": 0.88}}
     monkeypatch.setattr(benchmarks, "bench_memory", fake("memory", mem))
     code, out, err = _run(capsys, "bench", "memory", "--submaps", 1000, "--seed", 1)
     assert code == 0 and seen["memory"]["seed"] == 1 and seen["memory"]["submaps"] == 1000
     assert seen["memory"]["laps"] == 0  # the block loop unless asked
     assert "0.250 / 0.700 wall (target: last <= 1.3x first), 0.200 / 0.680 CPU" in out + err
     assert "submit wait 3.6 %" in out + err and "ATE reduction 0.880" in out + err and "false loops 0" in out + err
+    assert "covisibility 0.350 / 0.190, registration 0.230 / 0.880" in out + err
     assert _run(capsys, "bench", "memory", "--laps", 8)[0] == 0 and seen["memory"]["laps"] == 8
     monkeypatch.undo()
     code, out, err = _run(capsys, "bench", "memory", "--laps", -1, "--workdir", tmp_path)

@@ -706,6 +706,12 @@ def bench_memory(submaps: int = 320, workdir: str = "runs/bench_memory", seed: i
     return out
 
 
+def _stage_means(report: dict, window: slice) -> dict[str, float]:
+    """The back-end's mean wall seconds per submap by stage over the submaps ``window``."""
+    stages = report.get("backend_stage_seconds_per_submap", {})
+    return {k: round(float(np.mean(v[window])), 4) for k, v in stages.items() if len(v[window])}
+
+
 def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float = 0.3) -> dict:
     """What a long run must show (issue 24): the peak RSS over all processes (output writing included),
     the back-end's seconds per submap over submaps 100-199 and over the last 100, the front-end's share
@@ -729,6 +735,9 @@ def _scale_figures(source, run_dir: Path, report: dict, overlap_threshold: float
             "backend_cpu_s_per_submap_first100": float(cpu[100:200].mean()) if len(cpu) >= 200 else None,
             "backend_cpu_s_per_submap_last100": float(cpu[-100:].mean()) if len(cpu) >= 200 else None,
             "backend_cpu_s_per_100": [round(float(cpu[i:i + 100].mean()), 3) for i in range(0, len(cpu), 100)],
+            # where the two windows' wall time goes, by stage
+            "backend_stage_s_first100": _stage_means(report, slice(100, 200)) if len(seconds) >= 200 else None,
+            "backend_stage_s_last100": _stage_means(report, slice(-100, None)) if len(seconds) >= 200 else None,
             "frontend_submit_wait_fraction": report["timings"]["backend_submit_s"] / frontend_s if frontend_s else None,
             "backend_max_lag_submaps": report.get("backend_max_lag_submaps"),
             "backend_queries_deferred": report.get("backend_queries_deferred"),

@@ -249,6 +249,9 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         "backend_cpu_s_per_submap": float(np.mean(backend.cpu_seconds_per_submap)) if backend.cpu_seconds_per_submap
         else 0.0,
         "backend_cpu_seconds_per_submap": [round(float(x), 4) for x in backend.cpu_seconds_per_submap],
+        # the wall time per submap by stage (covisibility, registration, optimisation, re-description of moved layers)
+        "backend_stage_seconds_per_submap": {k: [round(float(x), 4) for x in v]
+                                             for k, v in backend.stage_seconds_per_submap.items()},
         "backend_timings": backend.timings,
         # submaps whose query was deferred while the back-end caught up (WorkerConfig.catch_up_lag)
         "backend_queries_deferred": len(backend.skipped),

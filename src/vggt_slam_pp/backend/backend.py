@@ -48,6 +48,8 @@ from vggt_slam_pp.retrieval.index import CovisibilityEdge
 
 log = logging.getLogger(__name__)
 
+STAGES = ("covisibility_s", "registration_s", "optimization_s", "relocate_s")  # the per-submap timings by stage
+
 __all__ = ["PENDING", "Backend", "BackendConfig", "BackendResult", "FaultConfig", "PoseSnapshot", "SubmapMessage"]
 
 
@@ -94,6 +96,8 @@ class BackendResult:
     height_refs: dict[int, float] = field(default_factory=dict)  # recording (segment) -> that height in the world
     cpu_seconds_per_submap: list[float] = field(default_factory=list)  # the same, in the back-end thread's CPU time:
     # its work, without the time it waited for a CPU the front-end held (the worker runs at idle priority)
+    stage_seconds_per_submap: dict[str, list[float]] = field(default_factory=dict)  # stage (STAGES) -> each
+    # submap's wall time in it, its deferred query included (where a long run's time goes, window by window)
 
 
 class Backend:
@@ -112,8 +116,8 @@ class Backend:
         self.covisibility: list[CovisibilityEdge] = []
         self.seconds: list[float] = []
         self.cpu_seconds: list[float] = []  # the same, CPU time of the back-end's thread
-        self.timings = {"covisibility_s": 0.0, "registration_s": 0.0, "optimization_s": 0.0, "relocate_s": 0.0,
-                        "deferred_s": 0.0}
+        self.stage_seconds: dict[str, list[float]] = {k: [] for k in STAGES}  # the same, by stage
+        self.timings = {**dict.fromkeys(STAGES, 0.0), "deferred_s": 0.0}
         self.memory_trace: list[tuple[int, float]] = []
         self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
         self._deferred: deque[tuple[int, np.ndarray, int]] = deque()  # (submap, camera centres, its entry in
@@ -132,6 +136,7 @@ class Backend:
         wait, a new one waits behind them: queries run in submap order, so each has its predecessor's matches
         (the sequence prior) and the corrections of the loops before it (proximity)."""
         t_start, c_start = time.perf_counter(), time.thread_time()
+        stages = self._stage_totals()
         query = query and not self._deferred
         if self.config.faults.slow_submap_s > 0:
             time.sleep(self.config.faults.slow_submap_s)
@@ -160,6 +165,8 @@ class Backend:
             self.timings["relocate_s"] += time.perf_counter() - t0
         self.seconds.append(time.perf_counter() - t_start)
         self.cpu_seconds.append(time.thread_time() - c_start)
+        for k, v in self._stage_totals(stages).items():
+            self.stage_seconds[k].append(v)
         snap = self.snapshot()
         if len(self.seconds) % 10 == 0:
             self.memory_trace.append((len(self.seconds), snap.rss_mb))
@@ -210,6 +217,10 @@ class Backend:
         self.timings["registration_s"] += time.perf_counter() - t0
         return accepted
 
+    def _stage_totals(self, since: dict[str, float] | None = None) -> dict[str, float]:
+        """The stages' time so far (:data:`STAGES`), or since ``since`` (an earlier call's result)."""
+        return {k: self.timings[k] - (since[k] if since else 0.0) for k in STAGES}
+
     @property
     def deferred(self) -> int:
         """Submaps whose query waits (added while the worker caught up)."""
@@ -219,6 +230,7 @@ class Backend:
         """Run the oldest deferred query: the submap (already in the graph and the gallery) queries the map
         at its current pose, as if it had just arrived; only older submaps can be its candidates."""
         t0, c0 = time.perf_counter(), time.thread_time()
+        stages = self._stage_totals()
         sid, centres, entry = self._deferred.popleft()
         accepted = self._query(sid, centres, self.map.store.get(sid), index=False)
         if accepted:
@@ -226,6 +238,8 @@ class Backend:
         spent = time.perf_counter() - t0
         self.seconds[entry] += spent  # the submap's cost, wherever its query ran
         self.cpu_seconds[entry] += time.thread_time() - c0
+        for k, v in self._stage_totals(stages).items():
+            self.stage_seconds[k][entry] += v
         self.timings["deferred_s"] += spent  # a subtotal: its parts are in the other timings
         return self.snapshot()
 
@@ -302,4 +316,5 @@ class Backend:
             tile_size=grid.tile_size if grid else None, mpp=grid.mpp if grid else None,
             memory_trace=list(self.memory_trace), placed=self.map.placed_submaps(), skipped=list(self.skipped),
             heights={i: h for i, (h, _) in graph.heights.items()}, height_refs=dict(graph.height_refs),
-            cpu_seconds_per_submap=list(self.cpu_seconds))
+            cpu_seconds_per_submap=list(self.cpu_seconds),
+            stage_seconds_per_submap={k: list(v) for k, v in self.stage_seconds.items()})

@@ -428,6 +428,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                         f"{r['backend_max_lag_submaps']} submaps, {r['backend_queries_deferred']} queries deferred; "
                         f"ATE reduction {_fraction(r['ate_reduction'])} (target >= 0.60); false loops "
                         f"{r['false_loops']} (target 0)")
+            if r.get("backend_stage_s_first100"):
+                summary += "\nby stage, s per submap, 100-199 / the last 100: " + ", ".join(
+                    f"{k.removesuffix('_s')} {v:.3f} / {r['backend_stage_s_last100'].get(k, 0.0):.3f}"
+                    for k, v in r["backend_stage_s_first100"].items())
     else:
         result = benchmarks.bench_covisibility(frames=args.frames, seed=args.seed, noise=args.noise,
                                                workdir=str(args.workdir or "runs/bench_covisibility"))

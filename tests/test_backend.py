@@ -422,6 +422,29 @@ def test_search_refined_by_descent_finds_the_grids_alignment(rng, monkeypatch):
         assert per_peak == {False: 25, True: 9}
 
 
+def test_search_in_a_window_scores_as_over_the_whole_map(rng):
+    """free_space_peaks with ``near`` rasterises the match only where its windows read it: the best alignment
+    in a window around the whole-map search's best scores as that alignment does, bit for bit (equal scores
+    one cell apart are a tie that either search may take)."""
+    from vggt_slam_pp.backend.search import CellMap, free_space_peaks, hue_vectors
+
+    world = _place(rng)
+    colours = _painted(world, 3)
+    for yaw, shift, scale in ((40, (9, 4), 1.25), (-150, (-6, 8), 0.8)):
+        seen_again, _ = _revisit(yaw, shift, scale, rng, world)
+        query = CellMap.of(seen_again, 1.0, 0.3)
+        match = CellMap.of(world, 1.0, 0.3, hue_vectors(colours, len(world)))
+        yaws, scales = np.arange(-180.0, 180.0, 6.0), np.exp([-0.3, 0.0, 0.3])
+        best = free_space_peaks(query, match, 1.0, yaws, scales, count=1)[0]
+        centre = query.uv[query.structure].mean(0)
+        at = best.A[:, :2] @ centre + best.A[:, 2]
+        for radius in (2.0, 5.0):
+            near = free_space_peaks(query, match, 1.0, yaws, scales, count=1, near=(at, radius))[0]
+            assert near.score == best.score
+            assert near.yaw_deg == best.yaw_deg and near.scale == best.scale
+            assert np.abs(near.A - best.A).max() <= 1.0 + 1e-9
+
+
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):
     from vggt_slam_pp.backend.search import free_space_agreement
 

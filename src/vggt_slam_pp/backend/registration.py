@@ -47,7 +47,7 @@ import collections
 import hashlib
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -558,7 +558,14 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         fit_idx = np.sort(np.r_[np.flatnonzero(own_structure), flat[_subsample(len(flat), c.icp_max_flat_points,
                                                                               query)]])
     refined = []
+    fits: dict[bytes, _Fit | None] = {}  # guesses that start alike (search peaks refined to one alignment) end alike
     for name, G in guesses.items():
+        key = G.tobytes()
+        if key in fits:
+            if fits[key] is not None:
+                refined.append(replace(fits[key], guess=name))
+            continue
+        fits[key] = None
         start = transform_points(G, src)
 
         def promising(T: np.ndarray, start: np.ndarray = start) -> bool:
@@ -592,6 +599,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             grounded = False  # ICP left the cameras' scale: ranked last (and rejected if nothing is better)
         refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
                             H, centre, agree, cells, lifted))
+        fits[key] = refined[-1]
         log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
                   query, match, name, agree, cells, s_overlap, refined[-1].overlap)
     if not refined:

@@ -324,49 +324,63 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
     m_shape = tuple(int(x) for x in np.ceil((match.uv.max(0) - m_lo) / cell) + pad + 1)
     if m_shape[0] * m_shape[1] > max_pixels:  # footprints this large are not one place
         return []
-    b_struct = _raster(match.uv[match.structure], m_lo, cell, m_shape)
-    b_near = cv2.dilate(b_struct, _KERNEL)
-    b_clear = _clear(_raster(match.uv, m_lo, cell, m_shape), b_struct)
-    coloured = query.coloured and match.coloured
-    if coloured:  # agreements weighted by 1 - |a||b| + a.b (colour_match before its clipping)
-        b_hue = _near_hue(_hue_raster(match.uv[match.structure], match.hue[match.structure], m_lo, cell, m_shape))
-        b_colour = [np.ascontiguousarray(b_hue[..., 0]), np.ascontiguousarray(b_hue[..., 1]),
-                    np.linalg.norm(b_hue, axis=-1).astype(np.float32)]
-    found: list[Alignment] = []
+    plans = []  # per yaw and scale: the query's cells there and the window positions to score
     for s in scales:
         for yaw in yaws_deg:
             a = np.radians(yaw)
             sR = float(s) * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
             rs = (query.uv - centre) @ sR.T
             lo = rs.min(0)
-            shape = tuple(int(x) for x in np.ceil((rs.max(0) - lo) / cell) + 1)
+            shape = np.ceil((rs.max(0) - lo) / cell).astype(int) + 1
             # window positions (i, j): the query's centroid lands at m_lo - lo + (i, j) cell
-            i0, i1 = np.zeros(2, int), np.array(m_shape) - np.array(shape)
+            i0, i1 = np.zeros(2, int), np.array(m_shape) - shape
             if near is not None:
                 i0 = np.maximum(i0, np.floor((near[0] - near[1] - m_lo + lo) / cell).astype(int))
                 i1 = np.minimum(i1, np.ceil((near[0] + near[1] - m_lo + lo) / cell).astype(int))
-            if np.any(i1 < i0):
-                continue
-            ij = np.floor((rs - lo) / cell).astype(np.int64)  # inside the template by construction
-            a_struct = _raster_cells(ij[query.structure], shape)
-            a_clear = _clear(_raster_cells(ij, shape), a_struct)
-            win = (slice(i0[0], i1[0] + shape[0]), slice(i0[1], i1[1] + shape[1]))
-            score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
-                     - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
-                     - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
-            if coloured:
-                hue = _hue_raster_cells(ij[query.structure], query.hue[query.structure], shape)
-                a_colour = [np.ascontiguousarray(hue[..., 0]), np.ascontiguousarray(hue[..., 1]),
-                            np.linalg.norm(hue, axis=-1).astype(np.float32)]
-                for sign, b_img, a_img in zip((1.0, 1.0, -1.0), b_colour, a_colour, strict=True):
-                    score += sign * cv2.matchTemplate(b_img[win], a_img, cv2.TM_CCORR)
-            is_max = (score >= cv2.dilate(score, _KERNEL)) & (score > 0)
-            ii, jj = np.nonzero(is_max)
-            offset = m_lo + i0 * cell - lo - sR @ centre
-            for k in np.argsort(-score[ii, jj])[: 2 * count]:
-                A = np.empty((2, 3))
-                A[:, :2], A[:, 2] = sR, offset + np.array([ii[k], jj[k]]) * cell
-                found.append(Alignment(float(score[ii[k], jj[k]]), A, float(yaw), float(s)))
+            if not np.any(i1 < i0):
+                plans.append((float(yaw), float(s), sR, rs, lo, shape, i0, i1))
+    if not plans:
+        return []
+    # the match's rasters only where some window reads them, one cell beyond for the 3 x 3 filters (the same
+    # values there as over the whole padded map)
+    r0 = np.maximum(np.min([p[6] for p in plans], axis=0) - 1, 0)
+    r1 = np.minimum(np.max([p[7] + p[5] for p in plans], axis=0) + 1, m_shape)
+    crop = (int(r1[0] - r0[0]), int(r1[1] - r0[1]))
+    ij_m = np.floor((match.uv - m_lo) / cell).astype(np.int64) - r0
+    inside = np.all((ij_m >= 0) & (ij_m < np.asarray(crop)), axis=1)
+    on = inside & match.structure
+    b_struct = _raster_cells(ij_m[on], crop)
+    b_near = cv2.dilate(b_struct, _KERNEL)
+    b_clear = _clear(_raster_cells(ij_m[inside], crop), b_struct)
+    coloured = query.coloured and match.coloured
+    if coloured:  # agreements weighted by 1 - |a||b| + a.b (colour_match before its clipping)
+        b_hue = _near_hue(_hue_raster_cells(ij_m[on], match.hue[on], crop))
+        b_colour = [np.ascontiguousarray(b_hue[..., 0]), np.ascontiguousarray(b_hue[..., 1]),
+                    np.linalg.norm(b_hue, axis=-1).astype(np.float32)]
+    found: list[Alignment] = []
+    for yaw, s, sR, rs, lo, shape, i0, i1 in plans:
+        shape = (int(shape[0]), int(shape[1]))
+        ij = np.floor((rs - lo) / cell).astype(np.int64)  # inside the template by construction
+        a_struct = _raster_cells(ij[query.structure], shape)
+        a_clear = _clear(_raster_cells(ij, shape), a_struct)
+        w0 = i0 - r0
+        win = (slice(w0[0], i1[0] - r0[0] + shape[0]), slice(w0[1], i1[1] - r0[1] + shape[1]))
+        score = (cv2.matchTemplate(b_near[win], a_struct, cv2.TM_CCORR)
+                 - cv2.matchTemplate(b_clear[win], a_struct, cv2.TM_CCORR)
+                 - cv2.matchTemplate(b_struct[win], a_clear, cv2.TM_CCORR))
+        if coloured:
+            hue = _hue_raster_cells(ij[query.structure], query.hue[query.structure], shape)
+            a_colour = [np.ascontiguousarray(hue[..., 0]), np.ascontiguousarray(hue[..., 1]),
+                        np.linalg.norm(hue, axis=-1).astype(np.float32)]
+            for sign, b_img, a_img in zip((1.0, 1.0, -1.0), b_colour, a_colour, strict=True):
+                score += sign * cv2.matchTemplate(b_img[win], a_img, cv2.TM_CCORR)
+        is_max = (score >= cv2.dilate(score, _KERNEL)) & (score > 0)
+        ii, jj = np.nonzero(is_max)
+        offset = m_lo + i0 * cell - lo - sR @ centre
+        for k in np.argsort(-score[ii, jj])[: 2 * count]:
+            A = np.empty((2, 3))
+            A[:, :2], A[:, 2] = sR, offset + np.array([ii[k], jj[k]]) * cell
+            found.append(Alignment(float(score[ii[k], jj[k]]), A, yaw, s))
     found.sort(key=lambda g: -g.score)
     out: list[Alignment] = []
     for g in found:
@@ -442,6 +456,7 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
     q_fine = maps[cell][0]
     centre = q_fine.uv[q_fine.structure].mean(0)
     ranked = []
+    agreements: dict[bytes, tuple[float, int]] = {}  # peaks that refine to one alignment are measured once
     offsets = np.arange(-1.0, 1.01, 0.5)
     for g in coarse:
         yaws_g, scales_g = g.yaw_deg + offsets * c.yaw_step_deg / 2, g.scale * np.exp(offsets * step / 2)
@@ -458,8 +473,11 @@ def search_alignments(src: np.ndarray, dst: np.ndarray, up_src: np.ndarray, up_d
         G = np.eye(4)
         G[:2, :2], G[:2, 3] = best.A[:, :2], best.A[:, 2]
         G[2, 2], G[2, 3] = best.scale, gd - best.scale * gs
-        agree, cells = free_space_agreement(transform_points(G, cs), cd, cell, gd + h, src_hue=hue_src,
-                                            dst_hue=hue_dst)
+        key = G.tobytes()
+        if key not in agreements:
+            agreements[key] = free_space_agreement(transform_points(G, cs), cd, cell, gd + h, src_hue=hue_src,
+                                                   dst_hue=hue_dst)
+        agree, cells = agreements[key]
         T = _lift(Rd.T) @ G @ _lift(Rs) @ np.diag([s_p, s_p, s_p, 1.0])
         ranked.append((agree if cells >= c.min_agreement_cells else 0.0, best.score, T))
     ranked.sort(key=lambda r: (-r[0], -r[1]))

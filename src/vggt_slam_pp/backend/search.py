@@ -331,9 +331,9 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
             sR = float(s) * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
             rs = (query.uv - centre) @ sR.T
             lo = rs.min(0)
-            shape = np.ceil((rs.max(0) - lo) / cell).astype(int) + 1
+            shape = tuple(int(x) for x in np.ceil((rs.max(0) - lo) / cell) + 1)
             # window positions (i, j): the query's centroid lands at m_lo - lo + (i, j) cell
-            i0, i1 = np.zeros(2, int), np.array(m_shape) - shape
+            i0, i1 = np.zeros(2, int), np.array(m_shape) - np.array(shape)
             if near is not None:
                 i0 = np.maximum(i0, np.floor((near[0] - near[1] - m_lo + lo) / cell).astype(int))
                 i1 = np.minimum(i1, np.ceil((near[0] + near[1] - m_lo + lo) / cell).astype(int))
@@ -343,8 +343,8 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
         return []
     # the match's rasters only where some window reads them, one cell beyond for the 3 x 3 filters (the same
     # values there as over the whole padded map)
-    r0 = np.maximum(np.min([p[6] for p in plans], axis=0) - 1, 0)
-    r1 = np.minimum(np.max([p[7] + p[5] for p in plans], axis=0) + 1, m_shape)
+    r0 = np.maximum(np.min([i0 for *_, i0, _ in plans], axis=0) - 1, 0)
+    r1 = np.minimum(np.max([i1 + shape for *_, shape, _, i1 in plans], axis=0) + 1, m_shape)
     crop = (int(r1[0] - r0[0]), int(r1[1] - r0[1]))
     ij_m = np.floor((match.uv - m_lo) / cell).astype(np.int64) - r0
     inside = np.all((ij_m >= 0) & (ij_m < np.asarray(crop)), axis=1)
@@ -359,7 +359,6 @@ def free_space_peaks(query: CellMap, match: CellMap, cell: float, yaws_deg: np.n
                     np.linalg.norm(b_hue, axis=-1).astype(np.float32)]
     found: list[Alignment] = []
     for yaw, s, sR, rs, lo, shape, i0, i1 in plans:
-        shape = (int(shape[0]), int(shape[1]))
         ij = np.floor((rs - lo) / cell).astype(np.int64)  # inside the template by construction
         a_struct = _raster_cells(ij[query.structure], shape)
         a_clear = _clear(_raster_cells(ij, shape), a_struct)

@@ -742,6 +742,12 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
             assert min(abs(e["match"] - m) for m in verified[e["query"] - 1]) <= 1
             followed += 1
     assert followed >= 1
+    # every submap kept its landmarks (the map lists them), and the images of the loops it closed agree
+    files = json.loads((tmp_path / "base" / "map.json").read_text())["files"]
+    assert all(f"submaps/{i:06d}.landmarks.npz" in files for i in range(base["submaps"]))
+    accepted = [c for c in graph["loop_candidates"] if c["accepted"]]
+    assert all(c["appearance"] >= 0 for c in accepted)  # measured on every loop registered from points
+    assert max(c["appearance"] for c in accepted) >= 10  # a look-alike's alignment scores 0-2 (docs/backend.md)
     for rate in (0.1, 0.3):
         faulty = run(source, _synthetic_run_config(0, worker="inline", faults=FaultConfig(wrong_candidates=rate)),
                      tmp_path / f"faulty{rate}")
@@ -867,7 +873,8 @@ def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_rela
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
     """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
     scale change is not held against it when the cameras' heights measured that scale (monocular submaps
-    drift mostly in scale, more than the model's sigma under realistic drift); its turn still is."""
+    drift mostly in scale, more than the model's sigma under realistic drift); its turn still is. Its
+    structure overlap must clear the threshold with a margin, and its images must agree where measured."""
     from types import SimpleNamespace
 
     from vggt_slam_pp.backend.backend import Backend, BackendConfig
@@ -882,9 +889,10 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     P = backend.map.graph.poses
     b = backend.closer.bounds(2, 12)
 
-    def loop(C, cue, structure=0.5):
+    def loop(C, cue, structure=0.5, appearance=-1, comparable=200):
         Z = sim3_inverse(P[2]) @ C @ P[12]
-        return LoopResult(12, 2, True, "accepted", Z, C, 0.5, structure, 0.1, 0, 0.0, "search_1", scale_cue=cue)
+        return LoopResult(12, 2, True, "accepted", Z, C, 0.5, structure, 0.1, 0, 0.0, "search_1", scale_cue=cue,
+                          appearance=appearance, appearance_comparable=comparable if appearance >= 0 else -1)
 
     about = P[12][:3, 3]  # the query's centroid: a scale change about it moves nothing
     rescale = make_sim3(np.exp(0.6 * b.max_log_scale), np.eye(3), np.zeros(3))
@@ -897,6 +905,14 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     # alone, a loop must clear the structure test with a margin: look-alikes sat at its edge
     assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))
     assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, structure=0.27))
+    # ... and, where both submaps kept landmarks, its images must show the same place (-1: not measured)
+    need = BackendConfig().lone_min_appearance
+    assert need > 0 and backend.closer.odometry_consistent(loop(np.eye(4), 1.0, appearance=need))
+    assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, appearance=need - 1))
+    assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, appearance=0))
+    # where few landmarks are comparable (seen from other directions: a crossing), the images cannot judge it
+    few = BackendConfig().appearance.min_comparable - 1
+    assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0, appearance=0, comparable=few))
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():
@@ -1457,3 +1473,60 @@ def test_a_lone_loop_contradicted_by_a_verified_loop_between_the_same_places_wai
     off = closer_with(BackendConfig(lone_needs_no_contradiction=False))
     off._wait(loop(11, 2, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.array([6.0, -4.0, 0.0]))))
     assert off.odometry_consistent(loop(12, 2, np.eye(4)))
+
+
+def _rendered_landmarks(scene, renderer, frames, T_world_submap):
+    """The landmarks (frontend/landmarks.py) of a dense submap of ``frames`` of ``scene`` in the frame
+    ``T_world_submap``: every second pixel of each render back-projected by its depth."""
+    from vggt_slam_pp.frontend.landmarks import LandmarkConfig, keyframe_landmarks
+    from vggt_slam_pp.frontend.types import SubmapPrediction
+
+    cam = scene.camera
+    v, u = np.mgrid[0:cam.height:2, 0:cam.width:2]
+    images, points, pixels = [], [], []
+    for i in frames:
+        T = scene.trajectory.poses[i]
+        rgb, depth = renderer.render(T)
+        d = depth[v, u]
+        ok = d > 0
+        rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(u.shape)], -1)[ok] * d[ok][:, None]
+        points.append(transform_points(sim3_inverse(T_world_submap) @ T, rays))
+        pixels.append(np.stack([u[ok], v[ok]], -1).astype(np.float32))
+        images.append(rgb)
+    S = len(frames)
+    eye3 = np.repeat(np.eye(3)[None], S, 0)
+    T_cam_submap = np.array([sim3_inverse(scene.trajectory.poses[i]) @ T_world_submap for i in frames])
+    pred = SubmapPrediction(np.asarray(frames), T_cam_submap, eye3, (cam.height, cam.width), eye3,
+                            points, [np.ones(len(p)) for p in points], pixels, [np.arange(len(p)) for p in points],
+                            np.ones(S, bool))
+    lm = keyframe_landmarks(pred, images, LandmarkConfig(keyframes=S))
+    # each landmark lies on the point seen at its keypoint: back in the image, within the pixel grid's spacing
+    first = lm.keyframe == 0
+    cam0 = transform_points(sim3_inverse(scene.trajectory.poses[frames[0]]) @ T_world_submap, lm.xyz[first].astype(float))
+    uv = cam0[:, :2] / cam0[:, 2:] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    assert len(uv) > 50 and np.all((uv >= -1) & (uv <= [cam.width, cam.height]))
+    return lm
+
+
+def test_the_images_tell_a_loop_from_a_look_alike_alignment():
+    """Landmarks (keyframe ORB features on the submap's points) of two submaps of the same place agree at
+    their true alignment, and not at an alignment 10 m off nor between two different places: the check that
+    keeps a look-alike's loop from being accepted alone (issue 18)."""
+    from vggt_slam_pp.backend.appearance import appearance_support
+    from vggt_slam_pp.synthetic import Renderer, make_scene
+
+    scene = make_scene("loop", frames=600, width=320, height=240, seed=0)
+    renderer = Renderer(scene.world, scene.camera)
+    P = scene.trajectory.poses
+    a = _rendered_landmarks(scene, renderer, [100, 103, 106, 109], P[100])
+    b = _rendered_landmarks(scene, renderer, [104, 107, 110, 113], P[104])
+    elsewhere = _rendered_landmarks(scene, renderer, [400, 403, 406, 409], P[400])
+    truth = sim3_inverse(P[100]) @ P[104]  # T_a_b
+    at_truth = appearance_support(b, a, truth, 2.0, 50)
+    shifted = make_sim3(1.0, np.eye(3), np.array([10.0, 0.0, 0.0])) @ truth
+    assert at_truth.agreeing >= 30 and at_truth.share > 0.1
+    assert appearance_support(b, a, shifted, 2.0, 50).agreeing <= 3
+    assert appearance_support(elsewhere, a, truth, 2.0, 50).agreeing <= 3
+    assert appearance_support(elsewhere, a, truth, 2.0, 50).comparable > 20  # it is near, it does not look alike
+    # a descriptor limit of 0 bits: nothing agrees by chance
+    assert appearance_support(b, a, truth, 2.0, 0).agreeing < at_truth.agreeing

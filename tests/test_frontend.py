@@ -422,3 +422,25 @@ def test_fewer_frames_than_one_submap(tmp_path, loop_sequence):
     report = _run(loop_sequence, tmp_path / "few", frontend=few)
     assert report["submaps"] == 1 and report["edges"] == [] and report["error"] is None
     assert 2 <= report["keyframes"] < 200 and report["ate_rmse_odometry"] < 1e-6 * report["gt_path_length"]
+
+
+def test_a_keypoint_takes_a_point_seen_at_its_pixel():
+    """Landmarks (frontend/landmarks.py) lift a keypoint onto the point observed nearest its pixel, within
+    1.5 of the points' pixel spacing, and onto none where no point is near (sky, filtered points)."""
+    from vggt_slam_pp.frontend.landmarks import _points_at
+
+    rng = np.random.default_rng(0)
+    v, u = np.mgrid[0:240:4, 0:320:4]
+    pixels = np.stack([u.ravel(), v.ravel()], -1) + rng.uniform(-0.4, 0.4, (u.size, 2))
+    keep = ~((pixels[:, 0] > 200) & (pixels[:, 1] < 100))  # a region without points
+    pixels = pixels[keep]
+    at = rng.uniform([0, 0], [319, 239], (500, 2))
+    j = _points_at(pixels, at, (240, 320), 1.5)
+    found = j >= 0
+    d = np.linalg.norm(pixels[np.maximum(j, 0)] - at, axis=1)
+    nearest = np.min(np.linalg.norm(pixels[None] - at[:, None], axis=2), axis=1)
+    assert np.all(d[found] <= 1.5 * 4 + 1e-9)
+    assert np.all(found[nearest <= 2.0])  # a point within half the spacing is always found ...
+    assert np.median(d[found] - nearest[found]) == 0.0  # ... and it is the nearest one, mostly
+    inside_hole = (at[:, 0] > 212) & (at[:, 1] < 88)
+    assert inside_hole.any() and not found[inside_hole].any()

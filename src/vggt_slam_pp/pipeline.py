@@ -402,6 +402,8 @@ class _BackendFeeder:
             sm = self.frontend.submaps[self.sent]
             pts, colors, centres = _points_and_cameras(sm)
             self.worker.store.put(sm.id, pts, colors)
+            if sm.landmarks is not None and len(sm.landmarks):
+                self.worker.store.put_landmarks(sm.id, sm.landmarks)
             features = sm.prediction.info.get("features")
             if features and Path(features).is_file():  # a sparse backbone's features: loops from images
                 p = sm.prediction

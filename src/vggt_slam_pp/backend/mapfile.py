@@ -4,7 +4,8 @@ Every run with the back-end that finishes (not one that fails, and not a localis
 writing ``map.json`` (last, atomically): the format name and
 version, the number of submaps, and the size of every file the map needs (``graph.json``,
 ``config.json``, ``submaps/NNNNNN.npy``, the points of each submap in its own frame, and
-``submaps/NNNNNN.rgb.npy``, their image colours, where the run had them). A folder is a
+``submaps/NNNNNN.rgb.npy``, their image colours, and ``submaps/NNNNNN.landmarks.npz``, their appearance
+landmarks, where the run had them). A folder is a
 map only once that manifest exists, so an interrupted run is not mistaken for one. :func:`load_map`
 refuses, in one line, a folder without a manifest, another format or version, and a missing or
 truncated file; it reads the pose graph into a :class:`SavedMap` and leaves the points on disk.
@@ -60,7 +61,8 @@ def write_manifest(folder: str | Path, n_submaps: int) -> None:
     """Write ``map.json`` for a finished run in ``folder`` (after every file it lists)."""
     folder = Path(folder)
     names = _manifest_files(folder, n_submaps)
-    names += [f"submaps/{i:06d}.rgb.npy" for i in range(n_submaps) if (folder / f"submaps/{i:06d}.rgb.npy").is_file()]
+    names += [f"submaps/{i:06d}.{kind}" for kind in ("rgb.npy", "landmarks.npz") for i in range(n_submaps)
+              if (folder / f"submaps/{i:06d}.{kind}").is_file()]
     files = {name: (folder / name).stat().st_size for name in names}
     manifest = {"format": MAP_FORMAT, "version": MAP_VERSION, "submaps": n_submaps, "files": files}
     atomic_write_text(folder / "map.json", json.dumps(manifest, indent=1))
@@ -91,7 +93,7 @@ def load_map(folder: str | Path) -> SavedMap:
     files, n = manifest.get("files"), manifest.get("submaps")
     if not isinstance(files, dict) or not isinstance(n, int) or isinstance(n, bool) or n < 1:
         raise InputError(f"{folder}/map.json is damaged: it must list its files and a submap count")
-    for name in dict.fromkeys([*_manifest_files(folder, n), *files]):  # the colours are listed when stored
+    for name in dict.fromkeys([*_manifest_files(folder, n), *files]):  # colours and landmarks are listed when stored
         path = folder / name
         if name not in files or not path.is_file():
             raise InputError(f"damaged map {folder}: {name} is missing")

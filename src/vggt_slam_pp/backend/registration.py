@@ -162,6 +162,10 @@ class LoopResult:
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
     scale_cue: float = 0.0  # the scale the two submaps' camera heights gave (0: none); an accepted loop agrees with it
+    appearance: int = -1  # query landmarks whose image feature the match shows at the aligned place (-1: not
+    # measured; backend/appearance.py)
+    appearance_comparable: int = -1  # query landmarks the alignment brings near a match landmark seen from a
+    # similar direction (-1: not measured)
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
@@ -169,6 +173,7 @@ class LoopResult:
                 "planar_inliers": self.planar_inliers, "score": self.score, "guess": self.guess,
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
                 "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
+                "appearance": self.appearance, "appearance_comparable": self.appearance_comparable,
                 **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {}),
                 **({"information": self.information.tolist()} if self.information is not None else {})}
 

@@ -2,7 +2,8 @@
 
 Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``, and their
 image colours (uint8 [N,3], when known) to ``<folder>/<id>.rgb.npy``; a sparse backbone's feature database
-and cameras to ``<id>.features.db`` and ``<id>.cameras.npz`` (loops found from images); a small LRU cache holds the
+and cameras to ``<id>.features.db`` and ``<id>.cameras.npz`` (loops found from images), its appearance landmarks
+(keyframe features on its points, :mod:`vggt_slam_pp.frontend.landmarks`) to ``<id>.landmarks.npz``; a small LRU cache holds the
 active window's points. Both the front-end process (writer) and the back-end worker process
 (reader) open the same folder.
 """
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vggt_slam_pp.errors import BackendError
+from vggt_slam_pp.frontend.types import Landmarks
 
 
 class SubmapStore:
@@ -34,7 +36,7 @@ class SubmapStore:
     def put(self, submap_id: int, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """Store ``points`` [N,3] and, when given, their ``colors`` [N,3] (uint8 RGB)."""
         pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
-        for stale in (self.features_path(submap_id), self.cameras_path(submap_id)):  # an earlier run's, if any
+        for stale in (self.features_path(submap_id), self.cameras_path(submap_id), self.landmarks_path(submap_id)):  # an earlier run's, if any
             stale.unlink(missing_ok=True)
         if colors is not None:
             rgb = np.ascontiguousarray(colors, np.uint8).reshape(-1, 3)
@@ -57,6 +59,29 @@ class SubmapStore:
             return np.load(path)
         except (OSError, ValueError) as exc:
             raise BackendError(f"cannot read the colours of submap {submap_id} from {self.folder}: {exc}") from exc
+
+    def landmarks_path(self, submap_id: int) -> Path:
+        return self.folder / f"{submap_id:06d}.landmarks.npz"
+
+    def put_landmarks(self, submap_id: int, landmarks: Landmarks) -> None:
+        """Keep submap ``submap_id``'s appearance landmarks (after its points: :meth:`put` removes an earlier
+        run's)."""
+        tmp = self.folder / f"{submap_id:06d}.landmarks.tmp.npz"
+        with open(tmp, "wb") as f:
+            np.savez(f, xyz=np.asarray(landmarks.xyz, np.float32), descriptors=np.asarray(landmarks.descriptors, np.uint8),
+                     keyframe=np.asarray(landmarks.keyframe, np.int16), view=np.asarray(landmarks.view, np.float32))
+        tmp.replace(self.landmarks_path(submap_id))
+
+    def get_landmarks(self, submap_id: int) -> Landmarks | None:
+        """Submap ``submap_id``'s appearance landmarks (:meth:`put_landmarks`), or None when none were kept."""
+        path = self.landmarks_path(submap_id)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as z:
+                return Landmarks(z["xyz"], z["descriptors"], z["keyframe"], z["view"])
+        except (OSError, ValueError, KeyError) as exc:
+            raise BackendError(f"cannot read the landmarks of submap {submap_id} from {self.folder}: {exc}") from exc
 
     def features_path(self, submap_id: int) -> Path:
         return self.folder / f"{submap_id:06d}.features.db"

@@ -34,6 +34,7 @@ from vggt_slam_pp.errors import FrontendError
 from vggt_slam_pp.frontend.backbones.base import Backbone
 from vggt_slam_pp.frontend.filtering import FilterConfig, filter_points
 from vggt_slam_pp.frontend.keyframes import KeyframeConfig, KeyframeDecision, KeyframeSelector
+from vggt_slam_pp.frontend.landmarks import LandmarkConfig, keyframe_landmarks
 from vggt_slam_pp.frontend.odometry import (
     OdometryConfig,
     chain,
@@ -58,6 +59,7 @@ class FrontendConfig:
     bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, min(16, 2 * overlap)))
     filter: FilterConfig = field(default_factory=FilterConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)  # image features on the points (loops)
 
 
 def sparse_overlap(submap_size: int) -> int:
@@ -148,7 +150,7 @@ class Frontend:
         self.submaps: list[Submap] = []
         self.edges: list[OdometryEdge] = []
         self.decisions: list[tuple[int, float, KeyframeDecision]] = []
-        self.timings = {"keyframes_s": 0.0, "backbone_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0}
+        self.timings = {"keyframes_s": 0.0, "backbone_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0, "landmarks_s": 0.0}
         self._last_frames: list[Frame] = []  # keyframes (images) of the last submap, for a bridge
         self._calls = 0  # backbone calls for the current submap (prediction file names)
 
@@ -174,7 +176,7 @@ class Frontend:
             light = dataclasses.replace(pred, points=empty, conf=[np.zeros(0, np.float32)] * pred.num_frames,
                                         pixels=[np.zeros((0, 2), np.float32)] * pred.num_frames,
                                         keys=[np.zeros(0, np.int64)] * pred.num_frames, depth=None, depth_conf=None)
-            self.submaps[k] = dataclasses.replace(sm, prediction=light, colors=None)
+            self.submaps[k] = dataclasses.replace(sm, prediction=light, colors=None, landmarks=None)
 
     def finish(self) -> FrontendResult:
         while (frames := self.assembler.flush()) is not None:  # a split may hand keyframes back
@@ -225,9 +227,12 @@ class Frontend:
             pred, frames, note = self._bridge(sid, prev, pred, frames, problem)
         if pred.num_points() == 0:
             log.warning("submap %d: no points left after filtering", sid)
+        t = time.perf_counter()
+        landmarks = keyframe_landmarks(pred, [f.image for f in frames], self.config.landmarks)
+        self.timings["landmarks_s"] += time.perf_counter() - t
         submap = Submap(sid, np.array([f.index for f in frames]), np.array([f.timestamp for f in frames]),
                         pred, has_overlap=bool(self.submaps), overlap=sum(1 for f in frames if f.index in in_prev),
-                        colors=point_colors(pred, frames))
+                        colors=point_colors(pred, frames), landmarks=landmarks)
         if prev is not None:
             t = time.perf_counter()
             edge = estimate_edge(sid - 1, prev.prediction, sid, pred, self.config.odometry)

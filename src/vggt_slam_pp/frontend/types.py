@@ -95,6 +95,31 @@ class SubmapPrediction:
 
 
 @dataclass(frozen=True, eq=False)
+class Landmarks:
+    """Image features with a 3-D position, in one submap's frame.
+
+    Attributes:
+        xyz: [N,3] float32 positions in the submap's frame.
+        descriptors: [N,32] uint8 ORB descriptors.
+        keyframe: [N] int16 index of the keyframe (in the submap) each was seen in.
+        view: [N,3] float32 unit direction from that keyframe's camera to the landmark, submap frame.
+    """
+
+    xyz: np.ndarray
+    descriptors: np.ndarray
+    keyframe: np.ndarray
+    view: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @staticmethod
+    def empty() -> Landmarks:
+        return Landmarks(np.zeros((0, 3), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.int16),
+                         np.zeros((0, 3), np.float32))
+
+
+@dataclass(frozen=True, eq=False)
 class Submap:
     """One submap: its id, keyframes and the backbone's (filtered) prediction."""
 
@@ -105,6 +130,7 @@ class Submap:
     has_overlap: bool
     overlap: int = 0  # how many leading keyframes the previous submap also holds (0 for the first)
     colors: np.ndarray | None = None  # [N,3] uint8 image colour of every point (prediction.points in order)
+    landmarks: Landmarks | None = None  # keyframe image features on the submap's points (frontend/landmarks.py)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,76 @@
+"""Whether two submaps' images agree with a loop's alignment (issue 18: look-alike places).
+
+A loop verified from points (:mod:`~vggt_slam_pp.backend.registration`) says that the query's geometry fits
+the match's at some alignment. On streets of facades a look-alike place tens of metres along the street fits
+as well, and no figure of the point registration separates the two (docs/backend.md, "Open"). The submaps'
+keyframe images can: each submap keeps ORB features lifted onto its own points (its *landmarks*,
+:mod:`vggt_slam_pp.frontend.landmarks`). At the loop's alignment, a landmark of the query should lie where
+the match saw the same corner, within ``radius_tiles``, with a similar descriptor (Hamming distance at most
+``max_hamming`` of 256 bits), much more often than at a wrong alignment.
+
+Images can only agree where both submaps saw the same surface from similar directions: where two passes
+cross at right angles, or drive a street the other way round, the same facade shows other corners or its
+other side, and a right loop finds no agreeing feature. So only the query's landmarks that land near a match
+landmark seen from within ``max_view_angle_deg`` of the same direction are *comparable*;
+:func:`appearance_support` counts those and, of them, the ones whose descriptors agree. Where few are
+comparable the images cannot say (the loop is then judged by its points alone).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vggt_slam_pp.frontend.types import Landmarks
+from vggt_slam_pp.geometry.lie import transform_points
+
+
+@dataclass(frozen=True)
+class AppearanceConfig:
+    enabled: bool = True  # measure loops' appearance support where both submaps have landmarks
+    radius_tiles: float = 1.0  # a query landmark agrees when a match landmark lies this close after the alignment
+    max_hamming: int = 50  # ... with an ORB descriptor at most this many bits away (of 256)
+    max_view_angle_deg: float = 30.0  # ... seen from within this angle of the same direction (else not comparable)
+    min_comparable: int = 50  # fewer comparable landmarks: the images cannot judge the loop
+
+
+@dataclass(frozen=True)
+class AppearanceSupport:
+    agreeing: int  # comparable query landmarks with a similar match landmark (descriptor within the limit)
+    comparable: int  # query landmarks that the alignment brings within the radius of a match landmark seen from
+    # a similar direction
+
+    @property
+    def share(self) -> float:
+        return self.agreeing / self.comparable if self.comparable else 0.0
+
+
+def _popcount(x: np.ndarray) -> np.ndarray:
+    """[K] number of set bits of each row of ``x`` [K,B] uint8."""
+    return np.unpackbits(x, axis=1).sum(1)
+
+
+def appearance_support(query: Landmarks, match: Landmarks, T_match_query: np.ndarray, radius: float,
+                       max_hamming: int, max_view_angle_deg: float = 30.0) -> AppearanceSupport:
+    """Of ``query``'s landmarks moved into the match's frame by ``T_match_query`` [4,4] (Sim(3)): how many
+    have a landmark of ``match`` within ``radius`` (match frame units) seen from within
+    ``max_view_angle_deg`` of the same direction (comparable), and how many of those have one whose ORB
+    descriptor is at most ``max_hamming`` bits away (agreeing)."""
+    if len(query) == 0 or len(match) == 0:
+        return AppearanceSupport(0, 0)
+    moved = transform_points(T_match_query, np.asarray(query.xyz, float))
+    near = cKDTree(np.asarray(match.xyz, float)).query_ball_point(moved, radius)
+    counts = np.fromiter((len(n) for n in near), int, len(near))
+    if not counts.any():
+        return AppearanceSupport(0, 0)
+    qi = np.repeat(np.arange(len(near)), counts)
+    mj = np.fromiter((j for n in near for j in n), int, int(counts.sum()))
+    R = np.asarray(T_match_query, float)[:3, :3]
+    R = R / np.cbrt(np.linalg.det(R))  # the rotation of the similarity
+    q_view = np.asarray(query.view, float) @ R.T
+    similar = np.einsum("ij,ij->i", q_view[qi], np.asarray(match.view, float)[mj]) >= np.cos(np.radians(max_view_angle_deg))
+    qi, mj = qi[similar], mj[similar]
+    dist = _popcount(np.bitwise_xor(query.descriptors[qi], match.descriptors[mj]))
+    return AppearanceSupport(len(np.unique(qi[dist <= max_hamming])), len(np.unique(qi)))

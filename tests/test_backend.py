@@ -1511,8 +1511,9 @@ def _rendered_landmarks(scene, renderer, frames, T_world_submap):
 def test_the_images_tell_a_loop_from_a_look_alike_alignment():
     """Landmarks (keyframe ORB features on the submap's points) of two submaps of the same place agree at
     their true alignment, and not at an alignment 10 m off nor between two different places: the check that
-    keeps a look-alike's loop from being accepted alone (issue 18)."""
-    from vggt_slam_pp.backend.appearance import appearance_support
+    keeps a look-alike's loop from being accepted alone (issue 18). Alone, they find that alignment."""
+    from vggt_slam_pp.backend.appearance import appearance_support, landmark_alignment
+    from vggt_slam_pp.geometry.lie import so3_log
     from vggt_slam_pp.synthetic import Renderer, make_scene
 
     scene = make_scene("loop", frames=600, width=320, height=240, seed=0)
@@ -1530,3 +1531,9 @@ def test_the_images_tell_a_loop_from_a_look_alike_alignment():
     assert appearance_support(elsewhere, a, truth, 2.0, 50).comparable > 20  # it is near, it does not look alike
     # a descriptor limit of 0 bits: nothing agrees by chance
     assert appearance_support(b, a, truth, 2.0, 0).agreeing < at_truth.agreeing
+    # the landmarks alone find the alignment (a registration guess under any drift), and none between two places
+    found = landmark_alignment(b, a, 2.0, 50, 12)
+    assert found is not None and found[1] >= 30
+    s, R, t = decompose_sim3(sim3_inverse(truth) @ found[0])
+    assert abs(np.log(s)) < 0.02 and np.degrees(np.linalg.norm(so3_log(R))) < 1.0 and np.linalg.norm(t) < 0.3
+    assert landmark_alignment(elsewhere, a, 2.0, 50, 12) is None

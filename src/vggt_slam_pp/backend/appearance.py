@@ -14,16 +14,25 @@ other side, and a right loop finds no agreeing feature. So only the query's land
 landmark seen from within ``max_view_angle_deg`` of the same direction are *comparable*;
 :func:`appearance_support` counts those and, of them, the ones whose descriptors agree. Where few are
 comparable the images cannot say (the loop is then judged by its points alone).
+
+The same landmarks also *find* an alignment (:func:`landmark_alignment`): mutual nearest descriptors across
+the two submaps, and the similarity most of them agree on (RANSAC). Under drift of a few per cent the
+estimate-free search can miss a revisit that the images see plainly (``bench loops --noise realistic``,
+KITTI 07-driven: 44 -> 0, 184 of 196 matches within a tile, 0.4 m from the truth); registration refines it
+from there (``landmarks`` guess) and verifies it like any other.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vggt_slam_pp.errors import GeometryError
 from vggt_slam_pp.frontend.types import Landmarks
+from vggt_slam_pp.geometry.alignment import estimate_sim3_robust
 from vggt_slam_pp.geometry.lie import transform_points
 
 
@@ -34,6 +43,8 @@ class AppearanceConfig:
     max_hamming: int = 50  # ... with an ORB descriptor at most this many bits away (of 256)
     max_view_angle_deg: float = 30.0  # ... seen from within this angle of the same direction (else not comparable)
     min_comparable: int = 50  # fewer comparable landmarks: the images cannot judge the loop
+    guess: bool = True  # registration also starts from the alignment of the two submaps' landmarks
+    guess_min_inliers: int = 12  # ... when at least this many mutual descriptor matches agree on it
 
 
 @dataclass(frozen=True)
@@ -74,3 +85,25 @@ def appearance_support(query: Landmarks, match: Landmarks, T_match_query: np.nda
     qi, mj = qi[similar], mj[similar]
     dist = _popcount(np.bitwise_xor(query.descriptors[qi], match.descriptors[mj]))
     return AppearanceSupport(len(np.unique(qi[dist <= max_hamming])), len(np.unique(qi)))
+
+
+def landmark_alignment(query: Landmarks, match: Landmarks, radius: float, max_hamming: int, min_inliers: int,
+                       seed: int = 0) -> tuple[np.ndarray, int] | None:
+    """``(T_match_query [4,4], inliers)`` from the landmarks alone: mutual nearest ORB descriptors at most
+    ``max_hamming`` bits apart, and the similarity that takes the most query landmarks within ``radius``
+    (match frame units) of their match's (RANSAC over 3-point Umeyama, seeded); None when fewer than
+    ``min_inliers`` agree on it."""
+    if len(query) < 3 or len(match) < 3:
+        return None
+    pairs = [m for m in cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(query.descriptors, match.descriptors)
+             if m.distance <= max_hamming]
+    if len(pairs) < max(min_inliers, 3):
+        return None
+    src = np.asarray(query.xyz, float)[[m.queryIdx for m in pairs]]
+    dst = np.asarray(match.xyz, float)[[m.trainIdx for m in pairs]]
+    try:
+        fit = estimate_sim3_robust(src, dst, radius, max_iterations=500, refit_rounds=2, seed=seed)
+    except GeometryError:
+        return None
+    n = int(fit.inliers.sum())
+    return (fit.T_dst_src, n) if n >= min_inliers else None

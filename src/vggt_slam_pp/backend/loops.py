@@ -29,7 +29,7 @@ import logging
 import numpy as np
 
 from vggt_slam_pp.backend import image_loops
-from vggt_slam_pp.backend.appearance import appearance_support
+from vggt_slam_pp.backend.appearance import appearance_support, landmark_alignment
 from vggt_slam_pp.backend.config import BackendConfig
 from vggt_slam_pp.backend.graph import Edge
 from vggt_slam_pp.backend.map import Map, subsample
@@ -192,7 +192,22 @@ class LoopCloser:
         cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
-                             colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m)
+                             colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m,
+                             more_guesses=self._landmark_guess(sid, match))
+
+    def _landmark_guess(self, sid: int, match: int) -> dict[str, np.ndarray]:
+        """``{"landmarks": T_match_query}`` from the two submaps' image landmarks
+        (:func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), or {} (none kept, too few agree)."""
+        a = self.config.appearance
+        if not (a.enabled and a.guess):
+            return {}
+        lq, lm = self.map.store.get_landmarks(sid), self.map.store.get_landmarks(match)
+        if lq is None or lm is None:
+            return {}
+        s_m, _, _ = decompose_sim3(self.map.graph.poses[match])
+        found = landmark_alignment(lq, lm, a.radius_tiles * self.tile_size / float(s_m), a.max_hamming,
+                                   a.guess_min_inliers, seed=sid * 7919 + match)
+        return {"landmarks": found[0]} if found is not None else {}
 
     def _appearance(self, r: LoopResult) -> LoopResult:
         """``r`` with its appearance support (backend/appearance.py) when it verified and both submaps kept

@@ -439,7 +439,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
                   colors_match: np.ndarray | None = None, height_query: float | None = None,
-                  height_match: float | None = None) -> LoopResult:
+                  height_match: float | None = None, more_guesses: dict[str, np.ndarray] | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -455,6 +455,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         height_query, height_match: each submap's cameras' height above its own ground, in its own units
             (:func:`~vggt_slam_pp.backend.search.camera_height`; optional): with both, their ratio is the
             loop's scale (``RegistrationConfig.height_cue``).
+        more_guesses: more initial guesses of ``T_match_query`` [4,4] by name (the two submaps' image
+            landmarks: :func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), refined and verified
+            like the others; not rescaled to the height cue (their scale is measured).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -506,6 +509,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         cue = (height_match / height_query, c.height_cue_tolerance)
         for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
             guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
+
+    guesses.update(more_guesses or {})
 
     def off_cue(T: np.ndarray) -> bool:
         """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""

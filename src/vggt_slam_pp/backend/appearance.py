@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from vggt_slam_pp.errors import GeometryError
 from vggt_slam_pp.frontend.types import Landmarks
-from vggt_slam_pp.geometry.alignment import estimate_sim3_robust
+from vggt_slam_pp.geometry.alignment import umeyama
 from vggt_slam_pp.geometry.lie import transform_points
 
 
@@ -81,18 +81,19 @@ def appearance_support(query: Landmarks, match: Landmarks, T_match_query: np.nda
     R = np.asarray(T_match_query, float)[:3, :3]
     R = R / np.cbrt(np.linalg.det(R))  # the rotation of the similarity
     q_view = np.asarray(query.view, float) @ R.T
-    similar = np.einsum("ij,ij->i", q_view[qi], np.asarray(match.view, float)[mj]) >= np.cos(np.radians(max_view_angle_deg))
+    cos = np.einsum("ij,ij->i", q_view[qi], np.asarray(match.view, float)[mj])
+    similar = cos >= np.cos(np.radians(max_view_angle_deg))
     qi, mj = qi[similar], mj[similar]
     dist = _popcount(np.bitwise_xor(query.descriptors[qi], match.descriptors[mj]))
     return AppearanceSupport(len(np.unique(qi[dist <= max_hamming])), len(np.unique(qi)))
 
 
 def landmark_alignment(query: Landmarks, match: Landmarks, radius: float, max_hamming: int, min_inliers: int,
-                       seed: int = 0) -> tuple[np.ndarray, int] | None:
+                       seed: int = 0, hypotheses: int = 256) -> tuple[np.ndarray, int] | None:
     """``(T_match_query [4,4], inliers)`` from the landmarks alone: mutual nearest ORB descriptors at most
     ``max_hamming`` bits apart, and the similarity that takes the most query landmarks within ``radius``
-    (match frame units) of their match's (RANSAC over 3-point Umeyama, seeded); None when fewer than
-    ``min_inliers`` agree on it."""
+    (match frame units) of their match's: the best of ``hypotheses`` 3-point Umeyama similarities (seeded
+    draws, solved all at once), refitted on its inliers; None when fewer than ``min_inliers`` agree."""
     if len(query) < 3 or len(match) < 3:
         return None
     pairs = [m for m in cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(query.descriptors, match.descriptors)
@@ -101,9 +102,38 @@ def landmark_alignment(query: Landmarks, match: Landmarks, radius: float, max_ha
         return None
     src = np.asarray(query.xyz, float)[[m.queryIdx for m in pairs]]
     dst = np.asarray(match.xyz, float)[[m.trainIdx for m in pairs]]
-    try:
-        fit = estimate_sim3_robust(src, dst, radius, max_iterations=500, refit_rounds=2, seed=seed)
-    except GeometryError:
-        return None
-    n = int(fit.inliers.sum())
-    return (fit.T_dst_src, n) if n >= min_inliers else None
+    rng = np.random.default_rng(seed)
+    pick = np.argsort(rng.random((hypotheses, len(src))), axis=1)[:, :3]  # 3 distinct pairs a hypothesis
+    T = _similarities(src[pick], dst[pick])
+    moved = np.einsum("kij,nj->kni", T[:, :3, :3], src) + T[:, None, :3, 3]
+    inliers = np.linalg.norm(moved - dst, axis=2) <= radius
+    best = inliers[np.argmax(inliers.sum(1))]
+    for _ in range(2):  # refit on the inliers, which may then grow
+        if best.sum() < 3:
+            return None
+        try:
+            fit = umeyama(src[best], dst[best])
+        except GeometryError:
+            return None
+        best = np.linalg.norm(transform_points(fit, src) - dst, axis=1) <= radius
+    n = int(best.sum())
+    return (fit, n) if n >= min_inliers else None
+
+
+def _similarities(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """[K,4,4] Umeyama similarities ``T_dst_src`` of K point sets ``src``, ``dst`` [K,M,3] at once (degenerate
+    sets give some similarity; they gather no inliers)."""
+    mu_s, mu_d = src.mean(1, keepdims=True), dst.mean(1, keepdims=True)
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = np.maximum((xs**2).sum((1, 2)) / src.shape[1], 1e-18)
+    U, D, Vt = np.linalg.svd(np.einsum("kmi,kmj->kij", xd, xs) / src.shape[1])
+    sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    S = np.ones((len(src), 3))
+    S[:, 2] = np.where(sign < 0, -1.0, 1.0)
+    R = np.einsum("kij,kj,kjl->kil", U, S, Vt)
+    scale = (D * S).sum(1) / var_s
+    T = np.zeros((len(src), 4, 4))
+    T[:, :3, :3] = scale[:, None, None] * R
+    T[:, :3, 3] = mu_d[:, 0] - np.einsum("kij,kj->ki", T[:, :3, :3], mu_s[:, 0])
+    T[:, 3, 3] = 1.0
+    return T

@@ -2,10 +2,10 @@
 
 Every submap's points (submap frame, float32 [N,3]) are written once to ``<folder>/<id>.npy``, and their
 image colours (uint8 [N,3], when known) to ``<folder>/<id>.rgb.npy``; a sparse backbone's feature database
-and cameras to ``<id>.features.db`` and ``<id>.cameras.npz`` (loops found from images), its appearance landmarks
-(keyframe features on its points, :mod:`vggt_slam_pp.frontend.landmarks`) to ``<id>.landmarks.npz``; a small LRU cache holds the
-active window's points. Both the front-end process (writer) and the back-end worker process
-(reader) open the same folder.
+and cameras to ``<id>.features.db`` and ``<id>.cameras.npz`` (loops found from images), its appearance
+landmarks (keyframe features on its points, :mod:`vggt_slam_pp.frontend.landmarks`) to
+``<id>.landmarks.npz``; a small LRU cache holds the active window's points. Both the front-end process
+(writer) and the back-end worker process (reader) open the same folder.
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ class SubmapStore:
     def put(self, submap_id: int, points: np.ndarray, colors: np.ndarray | None = None) -> None:
         """Store ``points`` [N,3] and, when given, their ``colors`` [N,3] (uint8 RGB)."""
         pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
-        for stale in (self.features_path(submap_id), self.cameras_path(submap_id), self.landmarks_path(submap_id)):  # an earlier run's, if any
-            stale.unlink(missing_ok=True)
+        for stale in (self.features_path(submap_id), self.cameras_path(submap_id), self.landmarks_path(submap_id)):
+            stale.unlink(missing_ok=True)  # an earlier run's, if any
         if colors is not None:
             rgb = np.ascontiguousarray(colors, np.uint8).reshape(-1, 3)
             if len(rgb) != len(pts):
@@ -68,7 +68,8 @@ class SubmapStore:
         run's)."""
         tmp = self.folder / f"{submap_id:06d}.landmarks.tmp.npz"
         with open(tmp, "wb") as f:
-            np.savez(f, xyz=np.asarray(landmarks.xyz, np.float32), descriptors=np.asarray(landmarks.descriptors, np.uint8),
+            np.savez(f, xyz=np.asarray(landmarks.xyz, np.float32),
+                     descriptors=np.asarray(landmarks.descriptors, np.uint8),
                      keyframe=np.asarray(landmarks.keyframe, np.int16), view=np.asarray(landmarks.view, np.float32))
         tmp.replace(self.landmarks_path(submap_id))
 

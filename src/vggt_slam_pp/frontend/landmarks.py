@@ -8,8 +8,9 @@ look-alike gives other corners, or the same texture at other places. So every su
 ``LandmarkConfig.keyframes`` of its keyframes (spread evenly over the valid ones), ORB features (binary,
 32 bytes: small enough to keep for every submap of a long run, on disk) whose keypoint falls on one of the
 submap's own points (within ``max_pixel_gap`` grid spacings): each such feature is a landmark with a
-position in the submap's frame and the direction its keyframe saw it from. :mod:`vggt_slam_pp.backend.appearance` counts the landmarks of two
-submaps that a loop's alignment brings together and whose descriptors match.
+position in the submap's frame and the direction its keyframe saw it from.
+:mod:`vggt_slam_pp.backend.appearance` counts the landmarks of two submaps that a loop's alignment brings
+together and whose descriptors match, and aligns two submaps by their landmarks alone.
 
 Any backbone whose points carry their pixels (dense VGGT / simulated, sparse COLMAP) gives landmarks; a
 sparse backbone's few points give fewer.

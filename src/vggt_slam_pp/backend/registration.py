@@ -510,8 +510,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
             guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
 
-    guesses.update(more_guesses or {})
-
     def off_cue(T: np.ndarray) -> bool:
         """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""
         return cue is not None and abs(float(np.log(decompose_sim3(T)[0] / cue[0]))) > cue[1]
@@ -551,107 +549,123 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             return False
         return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= 0.5 * c.min_overlap)
 
-    # a guess is worth refining only if enough of the query, and of its structure, lies within ICP's reach
-    guesses = {k: G for k, G in guesses.items() if within_reach(G)}
-    if not guesses:
-        return reject(f"overlap < {0.5 * c.min_overlap:.2f} or structure overlap < {c.min_structure_overlap} "
-                      "within the ICP's reach at every initial guess", planar_inliers=n_planar)
-    ground_dst_tree = cKDTree(levelled_dst[dst_ground, :2])
-    struct_hue = hue_dst[is_structure]
-    radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
-                  [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
-    r_in = c.inlier_radius_tiles * unit
-    normals = _REUSED.get(match, points_match, ("normals", c.normals_k), lambda: point_normals(dst, tree, c.normals_k))
-    fit_idx = np.arange(len(src))
-    if 0 < c.icp_max_flat_points < int((~own_structure).sum()):
-        flat = np.flatnonzero(~own_structure)
-        fit_idx = np.sort(np.r_[np.flatnonzero(own_structure), flat[_subsample(len(flat), c.icp_max_flat_points,
-                                                                              query)]])
-    refined = []
-    fits: dict[bytes, _Fit | None] = {}  # guesses that start alike (search peaks refined to one alignment) end alike
-    for name, G in guesses.items():
-        key = G.tobytes()
-        if key in fits:
-            if fits[key] is not None:
-                refined.append(replace(fits[key], guess=name))
-            continue
-        fits[key] = None
-        start = transform_points(G, src)
+    shared: dict = {}  # what every attempt derives alike: the match's ground tree, ICP radii, normals, fits
 
-        def promising(T: np.ndarray, start: np.ndarray = start) -> bool:
-            """Whether enough of the query's structure lies on the match's at the inlier radius yet."""
-            d_s = struct_tree.query(transform_points(T, start[own_structure]), distance_upper_bound=r_in)[0]
-            return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
+    def attempt(guesses: dict[str, np.ndarray]) -> LoopResult:
+        """Refine every guess within ICP's reach, rank the fits and verify the best (module docstring)."""
+        # a guess is worth refining only if enough of the query, and of its structure, lies within ICP's reach
+        guesses = {k: G for k, G in guesses.items() if within_reach(G)}
+        if not guesses:
+            return reject(f"overlap < {0.5 * c.min_overlap:.2f} or structure overlap < {c.min_structure_overlap} "
+                          "within the ICP's reach at every initial guess", planar_inliers=n_planar)
+        if not shared:
+            shared["ground_dst_tree"] = cKDTree(levelled_dst[dst_ground, :2])
+            shared["normals"] = _REUSED.get(match, points_match, ("normals", c.normals_k),
+                                            lambda: point_normals(dst, tree, c.normals_k))
+            fit_idx = np.arange(len(src))
+            if 0 < c.icp_max_flat_points < int((~own_structure).sum()):
+                flat = np.flatnonzero(~own_structure)
+                fit_idx = np.sort(np.r_[np.flatnonzero(own_structure),
+                                        flat[_subsample(len(flat), c.icp_max_flat_points, query)]])
+            shared["fit_idx"] = fit_idx
+            shared["fits"] = {}  # guesses that start alike (search peaks refined to one alignment) end alike
+        ground_dst_tree, normals, fit_idx = shared["ground_dst_tree"], shared["normals"], shared["fit_idx"]
+        fits: dict[bytes, _Fit | None] = shared["fits"]
+        struct_hue = hue_dst[is_structure]
+        radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
+                      [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
+        r_in = c.inlier_radius_tiles * unit
+        refined = []
+        for name, G in guesses.items():
+            key = G.tobytes()
+            if key in fits:
+                if fits[key] is not None:
+                    refined.append(replace(fits[key], guess=name))
+                continue
+            fits[key] = None
+            start = transform_points(G, src)
 
-        fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
-                                 check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None)
-        if fit is None:
-            log.debug("loop %d->%d guess %s: structure overlap below %.2f after %d ICP iterations", query, match,
-                      name, c.icp_check_share * c.min_structure_overlap, c.icp_check_iteration)
-            continue
-        T, H, centre = fit
-        cur = transform_points(T @ G, src)
-        d, _ = tree.query(cur, distance_upper_bound=r_in)
-        inl = np.isfinite(d)
-        residual = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
-        lifted = _ground_offset(cur[own_ground] @ level.T, ground_dst_tree, levelled_dst[dst_ground, 2], unit)
-        # the share of q's structure on m's structure, each point weighted by how its colour matches
-        d_s, j = struct_tree.query(cur[own_structure], distance_upper_bound=r_in)
-        near = np.isfinite(d_s)
-        s_overlap = float(colour_match(own_structure_hue[near], struct_hue[j[near]]).sum() / n_own_structure)
-        agree, cells = free_space_agreement(cur @ level.T, levelled_dst, c.agreement_cell_tiles * unit,
-                                            ground + c.structure_height_tiles * unit, src_hue=hue_src,
-                                            dst_hue=hue_dst, src_structure=own_structure)
-        if cells < c.min_agreement_cells:
-            agree = 0.0
-        grounded = abs(lifted) <= c.structure_height_tiles * unit
-        if off_cue(T @ G):
-            grounded = False  # ICP left the cameras' scale: ranked last (and rejected if nothing is better)
-        refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
-                            H, centre, agree, cells, lifted))
-        fits[key] = refined[-1]
-        log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
-                  query, match, name, agree, cells, s_overlap, refined[-1].overlap)
-    if not refined:
-        return reject(f"structure overlap < {c.icp_check_share * c.min_structure_overlap:.2f} after "
-                      f"{c.icp_check_iteration} ICP iterations at every initial guess", planar_inliers=n_planar)
-    refined.sort(key=lambda f: (-f.rank, -f.overlap, f.residual))  # ties (all verified): the tighter fit
-    best = refined[0]
-    s_overlap, overlap, residual, Z, agree, cells = (best.structure_overlap, best.overlap, best.residual, best.Z,
-                                                      best.agreement, best.cells)
-    H = best.H
-    ev = np.linalg.eigvalsh(level[:2] @ H[3:6, 3:6] @ level[:2].T)  # in-plane translation information
-    constraint = float(ev[0] / max(ev[1], 1e-12))
-    kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
-              residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint,
-              scale_cue=cue[0] if cue is not None else 0.0)
-    C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
-    log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
-    if overlap < c.min_overlap:
-        return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
-    if s_overlap < c.min_structure_overlap:
-        return reject(f"structure overlap {s_overlap:.2f} < {c.min_structure_overlap}", **kw)
-    if abs(best.lifted) > c.structure_height_tiles * unit:
-        return reject(f"grounds disagree: the query's lies {best.lifted * s_m:.2f} above the match's", **kw)
-    if agree < c.min_agreement:
-        return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
-    if residual > c.max_residual_tiles * unit:
-        return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
-    if off_cue(Z):
-        return reject(f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights", **kw)
-    if log_s > max_log_scale:
-        return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",
-                      **kw)
-    slack = c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may move a little further
-    if moved > bounds.max_translation + slack:
-        return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
-    if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
-        return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
-    for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
-        d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
-        if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
-            return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
-                          f"{best.rank:.2f})", **kw)
-    info = loop_information(H, best.centre, best.T_icp, np.eye(4), best.G, max(residual, c.min_trans_sigma_tiles * unit),
-                            np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
-    return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)
+            def promising(T: np.ndarray, start: np.ndarray = start) -> bool:
+                """Whether enough of the query's structure lies on the match's at the inlier radius yet."""
+                d_s = struct_tree.query(transform_points(T, start[own_structure]), distance_upper_bound=r_in)[0]
+                return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
+
+            fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
+                                     check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None)
+            if fit is None:
+                log.debug("loop %d->%d guess %s: structure overlap below %.2f after %d ICP iterations", query, match,
+                          name, c.icp_check_share * c.min_structure_overlap, c.icp_check_iteration)
+                continue
+            T, H, centre = fit
+            cur = transform_points(T @ G, src)
+            d, _ = tree.query(cur, distance_upper_bound=r_in)
+            inl = np.isfinite(d)
+            residual = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else np.inf
+            lifted = _ground_offset(cur[own_ground] @ level.T, ground_dst_tree, levelled_dst[dst_ground, 2], unit)
+            # the share of q's structure on m's structure, each point weighted by how its colour matches
+            d_s, j = struct_tree.query(cur[own_structure], distance_upper_bound=r_in)
+            near = np.isfinite(d_s)
+            s_overlap = float(colour_match(own_structure_hue[near], struct_hue[j[near]]).sum() / n_own_structure)
+            agree, cells = free_space_agreement(cur @ level.T, levelled_dst, c.agreement_cell_tiles * unit,
+                                                ground + c.structure_height_tiles * unit, src_hue=hue_src,
+                                                dst_hue=hue_dst, src_structure=own_structure)
+            if cells < c.min_agreement_cells:
+                agree = 0.0
+            grounded = abs(lifted) <= c.structure_height_tiles * unit
+            if off_cue(T @ G):
+                grounded = False  # ICP left the cameras' scale: ranked last (and rejected if nothing is better)
+            refined.append(_Fit(agree * s_overlap * grounded, s_overlap, float(inl.mean()), residual, T @ G, T, G, name,
+                                H, centre, agree, cells, lifted))
+            fits[key] = refined[-1]
+            log.debug("loop %d->%d guess %s: free-space agreement %.2f (%d cells), structure overlap %.2f, overlap %.2f",
+                      query, match, name, agree, cells, s_overlap, refined[-1].overlap)
+        if not refined:
+            return reject(f"structure overlap < {c.icp_check_share * c.min_structure_overlap:.2f} after "
+                          f"{c.icp_check_iteration} ICP iterations at every initial guess", planar_inliers=n_planar)
+        refined.sort(key=lambda f: (-f.rank, -f.overlap, f.residual))  # ties (all verified): the tighter fit
+        best = refined[0]
+        s_overlap, overlap, residual, Z, agree, cells = (best.structure_overlap, best.overlap, best.residual, best.Z,
+                                                          best.agreement, best.cells)
+        H = best.H
+        ev = np.linalg.eigvalsh(level[:2] @ H[3:6, 3:6] @ level[:2].T)  # in-plane translation information
+        constraint = float(ev[0] / max(ev[1], 1e-12))
+        kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
+                  residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint,
+                  scale_cue=cue[0] if cue is not None else 0.0)
+        C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
+        log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
+        if overlap < c.min_overlap:
+            return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
+        if s_overlap < c.min_structure_overlap:
+            return reject(f"structure overlap {s_overlap:.2f} < {c.min_structure_overlap}", **kw)
+        if abs(best.lifted) > c.structure_height_tiles * unit:
+            return reject(f"grounds disagree: the query's lies {best.lifted * s_m:.2f} above the match's", **kw)
+        if agree < c.min_agreement:
+            return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
+        if residual > c.max_residual_tiles * unit:
+            return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
+        if off_cue(Z):
+            return reject(f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights", **kw)
+        if log_s > max_log_scale:
+            return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",
+                          **kw)
+        slack = c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may move a little further
+        if moved > bounds.max_translation + slack:
+            return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
+        if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
+            return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
+        for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
+            d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
+            if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
+                return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
+                              f"{best.rank:.2f})", **kw)
+        info = loop_information(H, best.centre, best.T_icp, np.eye(4), best.G, max(residual, c.min_trans_sigma_tiles * unit),
+                                np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
+        return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)
+
+    first = attempt(guesses)
+    if first.accepted or not more_guesses:
+        return first
+    # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs
+    second = attempt({**guesses, **more_guesses})
+    return second if second.accepted else first

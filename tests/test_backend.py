@@ -327,6 +327,34 @@ def test_a_guess_whose_structure_lies_beyond_the_icps_reach_is_not_refined(rng):
     assert not far.accepted and "within the ICP's reach" in far.reason, far.reason
 
 
+def test_more_guesses_are_tried_only_where_the_point_guesses_fail(rng):
+    """The image landmarks' guess (``more_guesses``) is asked for only when no point guess verifies; then a
+    right one verifies the loop, from an estimate that no point guess could start from."""
+    import dataclasses
+
+    from vggt_slam_pp.backend.registration import RegistrationConfig
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    world = _place(rng)
+    local = dataclasses.replace(RegistrationConfig(), search_peaks=0, height_cue=False)  # the estimate only
+    asked = []
+
+    def images():
+        asked.append(1)
+        return {"landmarks": make_sim3(1.0, so3_exp(np.array([0, 0, 0.02])), np.array([0.3, -0.2, 0.0]))}
+
+    far = make_sim3(1.0, np.eye(3), np.array([40.0, 0.0, 0.0]))  # the estimate 20 tiles off
+    seen_again = world + rng.normal(0, 0.01, world.shape)
+    r = register_loop(5, 1, seen_again, world, far, np.eye(4), plane, 2.0, config=local, more_guesses=images)
+    assert r.accepted and r.guess == "landmarks" and asked == [1], r.reason
+    assert np.allclose(r.T_match_query, np.eye(4), atol=0.05)
+    alone = register_loop(5, 1, seen_again, world, far, np.eye(4), plane, 2.0, config=local)
+    assert not alone.accepted
+    near = make_sim3(1.0, np.eye(3), np.array([1.0, 0.5, 0.0]))
+    r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, more_guesses=images)
+    assert r.accepted and r.guess == "odometry" and asked == [1]  # the points verified it: images not asked
+
+
 def test_icp_stops_a_fit_that_its_check_finds_hopeless_and_is_unchanged_by_one_it_passes(rng):
     """ICP's mid-way check (RegistrationConfig.icp_check_iteration / icp_check_share): a fit whose structure is not
     yet on the match's at the inlier radius is dropped there; a check that passes changes nothing."""

@@ -193,7 +193,7 @@ class LoopCloser:
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
                              colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m,
-                             more_guesses=self._landmark_guess(sid, match))
+                             more_guesses=lambda: self._landmark_guess(sid, match))
 
     def _landmark_guess(self, sid: int, match: int) -> dict[str, np.ndarray]:
         """``{"landmarks": T_match_query}`` from the two submaps' image landmarks

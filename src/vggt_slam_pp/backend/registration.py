@@ -439,7 +439,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
                   colors_match: np.ndarray | None = None, height_query: float | None = None,
-                  height_match: float | None = None, more_guesses: dict[str, np.ndarray] | None = None) -> LoopResult:
+                  height_match: float | None = None,
+                  more_guesses: Callable[[], dict[str, np.ndarray]] | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -455,9 +456,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         height_query, height_match: each submap's cameras' height above its own ground, in its own units
             (:func:`~vggt_slam_pp.backend.search.camera_height`; optional): with both, their ratio is the
             loop's scale (``RegistrationConfig.height_cue``).
-        more_guesses: more initial guesses of ``T_match_query`` [4,4] by name (the two submaps' image
-            landmarks: :func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), refined and verified
-            like the others; not rescaled to the height cue (their scale is measured).
+        more_guesses: gives more initial guesses of ``T_match_query`` [4,4] by name (the two submaps' image
+            landmarks: :func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), called only when the
+            other guesses fail to verify; refined and verified with them (not rescaled to the height cue:
+            their scale is measured).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -664,8 +666,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)
 
     first = attempt(guesses)
-    if first.accepted or not more_guesses:
+    more = more_guesses() if more_guesses is not None and not first.accepted else {}
+    if not more:
         return first
     # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs
-    second = attempt({**guesses, **more_guesses})
+    second = attempt({**guesses, **more})
     return second if second.accepted else first

@@ -43,8 +43,38 @@ class AppearanceConfig:
     max_hamming: int = 50  # ... with an ORB descriptor at most this many bits away (of 256)
     max_view_angle_deg: float = 30.0  # ... seen from within this angle of the same direction (else not comparable)
     min_comparable: int = 50  # fewer comparable landmarks: the images cannot judge the loop
+    min_agreeing: int = 5  # where they can, fewer agreeing ones: the images disagree, the loop is refused (look-alikes
+    # 5-98 m off scored 0-1 on the bench worlds, right loops 5-331: docs/backend.md); <= 0: never refused
     guess: bool = True  # registration also starts from the alignment of the two submaps' landmarks
     guess_min_inliers: int = 12  # ... when at least this many mutual descriptor matches agree on it
+
+
+@dataclass(frozen=True)
+class ImageCheck:
+    """The two submaps' landmarks, for one loop candidate (:func:`~vggt_slam_pp.backend.registration.register_loop`):
+    an alignment they agree on, and whether they agree with any alignment. ``radius`` in match frame units."""
+
+    query: Landmarks
+    match: Landmarks
+    radius: float
+    config: AppearanceConfig
+    seed: int = 0
+
+    def guesses(self) -> dict[str, np.ndarray]:
+        """``{"landmarks": T_match_query}`` (:func:`landmark_alignment`), or {} when too few agree."""
+        if not self.config.guess:
+            return {}
+        found = landmark_alignment(self.query, self.match, self.radius, self.config.max_hamming,
+                                   self.config.guess_min_inliers, self.seed)
+        return {"landmarks": found[0]} if found is not None else {}
+
+    def support(self, T_match_query: np.ndarray) -> AppearanceSupport:
+        return appearance_support(self.query, self.match, T_match_query, self.radius, self.config.max_hamming,
+                                  self.config.max_view_angle_deg)
+
+    def disagrees(self, support: AppearanceSupport) -> bool:
+        """Whether the images can judge an alignment (enough comparable landmarks) and reject it."""
+        return support.comparable >= self.config.min_comparable and support.agreeing < self.config.min_agreeing
 
 
 @dataclass(frozen=True)

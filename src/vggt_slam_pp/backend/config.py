@@ -51,9 +51,6 @@ class BackendConfig:
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
     lone_min_structure_overlap: float = 0.3  # a loop accepted without a partner needs this structure overlap
     # (verification asks 0.25 of every loop; wrong ones accepted alone sat at 0.25-0.27: docs/backend.md)
-    lone_min_appearance: int = 5  # ... and, where its images can judge it, this many of the query's landmarks
-    # seen by the match at the aligned place (backend/appearance.py; on the bench worlds every verified loop more
-    # than 5 m off the truth scored 0 but one, right loops 5-331: docs/backend.md); <= 0: not asked
     lone_needs_no_contradiction: bool = True  # ... and no verified loop between the same places (queries and
     # matches within consistency_submaps) that disagrees with it (LoopCloser.contradicted)
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)

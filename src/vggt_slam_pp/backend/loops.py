@@ -7,16 +7,16 @@ which verified registrations become edges of the pose graph.
    the ``proximity_candidates`` nearest earlier submaps in the current estimate (within a radius, or within
    what the estimate can have drifted between the two); a submap of a recording
    not yet placed in the map gets its ``unplaced_candidates`` best covisible submaps by votes instead;
-2. each is registered and verified (:func:`~vggt_slam_pp.backend.registration.register_loop`) within the
+2. each is registered and verified (:func:`~vggt_slam_pp.backend.registration.register_loop`, with the two
+   submaps' image landmarks where both kept them: :mod:`~vggt_slam_pp.backend.appearance`) within the
    bounds odometry allows (:meth:`LoopCloser.bounds`, along the least uncertain path through the pose
    graph); when both submaps come from a sparse backbone that kept its image features, the best
    ``images.max_candidates`` are registered from their images instead
    (:func:`~vggt_slam_pp.backend.image_loops.register_by_images`);
 3. a verified loop becomes an edge when it closes a consistent cycle with another verified loop
    (:meth:`LoopCloser.consistent`, pairwise consistency) or when its correction is within one sigma of the
-   drift model, no verified loop between the same places disagrees with it and its images, where they can
-   judge it, agree (:meth:`LoopCloser.odometry_consistent`, :meth:`LoopCloser.contradicted`,
-   :mod:`~vggt_slam_pp.backend.appearance`); a loop that would place a recording in the map
+   drift model and no verified loop between the same places disagrees with it
+   (:meth:`LoopCloser.odometry_consistent`, :meth:`LoopCloser.contradicted`); a loop that would place a recording in the map
    needs ``placement_votes`` agreeing loops (:meth:`LoopCloser.placement`). Otherwise it waits for a
    partner ("pending"). Rejected candidates are kept with their reason.
 """
@@ -29,7 +29,7 @@ import logging
 import numpy as np
 
 from vggt_slam_pp.backend import image_loops
-from vggt_slam_pp.backend.appearance import appearance_support, landmark_alignment
+from vggt_slam_pp.backend.appearance import ImageCheck
 from vggt_slam_pp.backend.config import BackendConfig
 from vggt_slam_pp.backend.graph import Edge
 from vggt_slam_pp.backend.map import Map, subsample
@@ -148,7 +148,7 @@ class LoopCloser:
                     sid, match, m.store, g.poses[sid], g.poses[match], self.bounds(match, sid), self.config.images,
                     score, slack=self.config.registration.icp_radius_tiles * self.tile_size)
             else:
-                r = self._appearance(self._register(sid, match, score, margin, res, points, colors))
+                r = self._register(sid, match, score, margin, res, points, colors)
             r = dataclasses.replace(r, source=source)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
                      sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
@@ -193,36 +193,18 @@ class LoopCloser:
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
                              colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m,
-                             more_guesses=lambda: self._landmark_guess(sid, match))
+                             images=self._images(sid, match))
 
-    def _landmark_guess(self, sid: int, match: int) -> dict[str, np.ndarray]:
-        """``{"landmarks": T_match_query}`` from the two submaps' image landmarks
-        (:func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), or {} (none kept, too few agree)."""
+    def _images(self, sid: int, match: int) -> ImageCheck | None:
+        """The two submaps' image landmarks for registration (backend/appearance.py), or None (none kept)."""
         a = self.config.appearance
-        if not (a.enabled and a.guess):
-            return {}
+        if not a.enabled:
+            return None
         lq, lm = self.map.store.get_landmarks(sid), self.map.store.get_landmarks(match)
         if lq is None or lm is None:
-            return {}
+            return None
         s_m, _, _ = decompose_sim3(self.map.graph.poses[match])
-        found = landmark_alignment(lq, lm, a.radius_tiles * self.tile_size / float(s_m), a.max_hamming,
-                                   a.guess_min_inliers, seed=sid * 7919 + match)
-        return {"landmarks": found[0]} if found is not None else {}
-
-    def _appearance(self, r: LoopResult) -> LoopResult:
-        """``r`` with its appearance support (backend/appearance.py) when it verified and both submaps kept
-        landmarks."""
-        a = self.config.appearance
-        if not (r.accepted and a.enabled and r.T_match_query is not None):
-            return r
-        lq, lm = self.map.store.get_landmarks(r.query), self.map.store.get_landmarks(r.match)
-        if lq is None or lm is None:
-            return r
-        s_m, _, _ = decompose_sim3(self.map.graph.poses[r.match])
-        sup = appearance_support(lq, lm, r.T_match_query, a.radius_tiles * self.tile_size / float(s_m), a.max_hamming,
-                                 a.max_view_angle_deg)
-        log.debug("loop %d->%d: appearance %d of %d comparable landmarks", r.query, r.match, sup.agreeing, sup.comparable)
-        return dataclasses.replace(r, appearance=sup.agreeing, appearance_comparable=sup.comparable)
+        return ImageCheck(lq, lm, a.radius_tiles * self.tile_size / float(s_m), a, seed=sid * 7919 + match)
 
     def _wait(self, r: LoopResult) -> None:
         self._pending.append(len(self.loops))
@@ -324,21 +306,14 @@ class LoopCloser:
         a consistent cycle with the odometry chain itself: it needs no partner loop, if its structure overlap
         is at least ``lone_min_structure_overlap`` (every wrong loop accepted alone on the bench worlds,
         realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25; a loop
-        registered from images is exempt: its "structure overlap" is the share of keyframes registered) and,
-        where its images can judge it, at least ``lone_min_appearance`` of the query's landmarks agree with it
-        (:mod:`~vggt_slam_pp.backend.appearance`: a look-alike's geometry fits, its images do not). Its scale
-        change is not tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry
+        registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its
+        scale change is not tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry
         drifted, measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified
         loop between the same places disagree with it (:meth:`contradicted`)."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:
             return False  # alone, it must clear the structure test with a margin (look-alikes sit at its edge)
-        judged = r.appearance_comparable >= self.config.appearance.min_comparable  # else its images cannot say
-        if judged and r.appearance < self.config.lone_min_appearance:
-            log.info("loop %d->%d not accepted alone: %d of its image features agree (%d asked)", r.query, r.match,
-                     r.appearance, self.config.lone_min_appearance)
-            return False  # its images do not show the same place: a look-alike's geometry
         b = self.bounds(r.match, r.query)
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
         log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f)",

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vggt_slam_pp.backend.appearance import ImageCheck
 from vggt_slam_pp.backend.search import (
     SearchConfig,
     colour_match,
@@ -439,8 +440,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
                   colors_match: np.ndarray | None = None, height_query: float | None = None,
-                  height_match: float | None = None,
-                  more_guesses: Callable[[], dict[str, np.ndarray]] | None = None) -> LoopResult:
+                  height_match: float | None = None, images: ImageCheck | None = None) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -456,10 +456,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         height_query, height_match: each submap's cameras' height above its own ground, in its own units
             (:func:`~vggt_slam_pp.backend.search.camera_height`; optional): with both, their ratio is the
             loop's scale (``RegistrationConfig.height_cue``).
-        more_guesses: gives more initial guesses of ``T_match_query`` [4,4] by name (the two submaps' image
-            landmarks: :func:`~vggt_slam_pp.backend.appearance.landmark_alignment`), called only when the
-            other guesses fail to verify; refined and verified with them (not rescaled to the height cue:
-            their scale is measured).
+        images: the two submaps' image landmarks (:class:`~vggt_slam_pp.backend.appearance.ImageCheck`;
+            optional): where they can judge the result and disagree with it, it is refused ("images
+            disagree"); where the point guesses fail to verify, the alignment the landmarks agree on is one
+            more guess (``landmarks``; not rescaled to the height cue: its scale is measured).
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -661,12 +661,18 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
                 return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
                               f"{best.rank:.2f})", **kw)
+        if images is not None:
+            support = images.support(Z)
+            kw.update(appearance=support.agreeing, appearance_comparable=support.comparable)
+            if images.disagrees(support):
+                return reject(f"images disagree: {support.agreeing} of {support.comparable} comparable landmarks "
+                              "agree", **kw)
         info = loop_information(H, best.centre, best.T_icp, np.eye(4), best.G, max(residual, c.min_trans_sigma_tiles * unit),
                                 np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
         return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)
 
     first = attempt(guesses)
-    more = more_guesses() if more_guesses is not None and not first.accepted else {}
+    more = images.guesses() if images is not None and not first.accepted else {}
     if not more:
         return first
     # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs

@@ -38,21 +38,23 @@ from vggt_slam_pp.geometry.lie import transform_points
 
 @dataclass(frozen=True)
 class AppearanceConfig:
-    enabled: bool = True  # measure loops' appearance support where both submaps have landmarks
+    enabled: bool = True  # check loops against the two submaps' landmarks where both kept them
     radius_tiles: float = 1.0  # a query landmark agrees when a match landmark lies this close after the alignment
     max_hamming: int = 50  # ... with an ORB descriptor at most this many bits away (of 256)
     max_view_angle_deg: float = 30.0  # ... seen from within this angle of the same direction (else not comparable)
     min_comparable: int = 50  # fewer comparable landmarks: the images cannot judge the loop
-    min_agreeing: int = 5  # where they can, fewer agreeing ones: the images disagree, the loop is refused (look-alikes
-    # 5-98 m off scored 0-1 on the bench worlds, right loops 5-331: docs/backend.md); <= 0: never refused
+    min_agreeing: int = 5  # where they can, fewer agreeing ones: the images disagree, the loop is refused
+    # (verified look-alikes 7.7-98.6 m off scored 0-1 on the bench worlds, right loops 5-331: docs/backend.md);
+    # <= 0: never refused
     guess: bool = True  # registration also starts from the alignment of the two submaps' landmarks
     guess_min_inliers: int = 12  # ... when at least this many mutual descriptor matches agree on it
 
 
 @dataclass(frozen=True)
 class ImageCheck:
-    """The two submaps' landmarks, for one loop candidate (:func:`~vggt_slam_pp.backend.registration.register_loop`):
-    an alignment they agree on, and whether they agree with any alignment. ``radius`` in match frame units."""
+    """The two submaps' landmarks, for one loop candidate
+    (:func:`~vggt_slam_pp.backend.registration.register_loop`): an alignment they agree on, and whether they
+    agree with any alignment. ``radius`` in match frame units."""
 
     query: Landmarks
     match: Landmarks

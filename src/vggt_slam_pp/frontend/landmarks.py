@@ -31,7 +31,7 @@ class LandmarkConfig:
     keyframes: int = 12  # keyframes per submap whose features are kept (evenly spread); 0: no landmarks
     features: int = 400  # ORB features detected per keyframe (at most)
     max_pixel_gap: float = 1.5  # a keypoint takes the nearest point of its keyframe within this many of the
-    # points' own pixel spacings (the median distance to the nearest other point's pixel)
+    # points' own pixel spacings (the side of the image area they cover, shared among them)
 
 
 def keyframe_landmarks(pred: SubmapPrediction, images: list[np.ndarray], config: LandmarkConfig) -> Landmarks:

@@ -551,7 +551,12 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             return False
         return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= 0.5 * c.min_overlap)
 
-    shared: dict = {}  # what every attempt derives alike: the match's ground tree, ICP radii, normals, fits
+    struct_hue = hue_dst[is_structure]
+    radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
+                  [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
+    r_in = c.inlier_radius_tiles * unit
+    shared: dict = {}  # what every attempt derives alike, made once a guess is within reach: the match's ground
+    # tree and normals, the query's points ICP fits, and the fits by their guess
 
     def attempt(guesses: dict[str, np.ndarray]) -> LoopResult:
         """Refine every guess within ICP's reach, rank the fits and verify the best (module docstring)."""
@@ -573,10 +578,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             shared["fits"] = {}  # guesses that start alike (search peaks refined to one alignment) end alike
         ground_dst_tree, normals, fit_idx = shared["ground_dst_tree"], shared["normals"], shared["fit_idx"]
         fits: dict[bytes, _Fit | None] = shared["fits"]
-        struct_hue = hue_dst[is_structure]
-        radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
-                      [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
-        r_in = c.inlier_radius_tiles * unit
         refined = []
         for name, G in guesses.items():
             key = G.tobytes()

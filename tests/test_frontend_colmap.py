@@ -250,7 +250,7 @@ def test_an_estimated_camera_is_estimated_again_when_every_attempt_with_it_is_fo
     frames = [straight[i] for i in range(0, 36, 3)]
     backbone = ColmapBackbone(calibrated=False, keep_features=False)
     held = [0.85 * truth, 0.85 * truth, 159.5, 119.5, 0.0, 0.0, 0.0, 0.0]
-    backbone._estimated = ((320, 240), held)
+    backbone._estimated = ((320, 240), held, "OPENCV")
     pred = backbone.predict(frames)
     last = backbone.camera["history"][-1]
     assert last["adopted"] and last["reason"] == "re-estimated after a fold in every attempt"
@@ -259,12 +259,12 @@ def test_an_estimated_camera_is_estimated_again_when_every_attempt_with_it_is_fo
 
 
 def test_a_full_camera_refinement_far_from_the_constrained_estimate_is_refused():
-    from vggt_slam_pp.frontend.backbones.colmap import _far_from
+    from vggt_slam_pp.frontend.backbones.colmap_camera import far_from
 
-    assert _far_from([400, 402, 322, 238, -0.1, 0.01, 0, 0], 398.0, 640, 480) == ""
-    assert "focal" in _far_from([440, 440, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
-    assert "focal lengths" in _far_from([390, 410, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
-    assert "principal point" in _far_from([398, 398, 380, 240, 0, 0, 0, 0], 398.0, 640, 480)
+    assert far_from([400, 402, 322, 238, -0.1, 0.01, 0, 0], 398.0, 640, 480) == ""
+    assert "focal" in far_from([440, 440, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
+    assert "focal lengths" in far_from([390, 410, 320, 240, 0, 0, 0, 0], 398.0, 640, 480)
+    assert "principal point" in far_from([398, 398, 380, 240, 0, 0, 0, 0], 398.0, 640, 480)
 
 
 @pytest.fixture(scope="module")
@@ -303,7 +303,7 @@ def test_a_camera_held_from_a_straight_stretch_is_refined_where_the_drive_turns(
     source, f_true = turning
     bb = ColmapBackbone(calibrated=False, keep_features=False)
     f = 0.95 * f_true
-    bb._estimated = ((480, 200), [f, f, 240.0, 100.0, 0.0, 0.0, 0.0, 0.0])  # as if estimated on a straight stretch
+    bb._estimated = ((480, 200), [f, f, 240.0, 100.0, 0.0, 0.0, 0.0, 0.0], "OPENCV")  # as if from a straight stretch
     bb.camera = {"params": list(bb._estimated[1]), "spread_deg": 0.3, "history": []}
     pred = bb.predict([source[i] for i in range(24, 66, 2)])
     assert pred.valid.all() and "refined on keyframes 24..64" in bb.camera.get("source", "")
@@ -313,7 +313,7 @@ def test_a_camera_held_from_a_straight_stretch_is_refined_where_the_drive_turns(
     bb.predict([source[i] for i in range(0, 30, 2)])
     assert bb.camera["params"] == held
     other = ColmapBackbone(calibrated=False, keep_features=False)
-    other._estimated = ((480, 200), [f, f, 240.0, 100.0, 0.0, 0.0, 0.0, 0.0])
+    other._estimated = ((480, 200), [f, f, 240.0, 100.0, 0.0, 0.0, 0.0, 0.0], "OPENCV")
     other.camera = {"params": list(other._estimated[1]), "spread_deg": 60.0, "history": []}
     other.predict([source[i] for i in range(24, 66, 2)])
     assert other.camera["params"][0] == f and "source" not in other.camera

@@ -286,8 +286,10 @@ def _print_summary(report: dict, out) -> None:
               (f" ({len(recovered)} recovered by a bridge)" if recovered else ""))
     if report.get("camera", {}).get("source", "given") != "given":
         cam = report["camera"]
-        names = "f cx cy k1 k2" if cam.get("model") == "RADIAL" else "fx fy cx cy k1 k2 p1 p2"
-        print(f"camera ({cam['source']}): {names} = " + " ".join(f"{v:.4g}" for v in cam["params"]))
+        from vggt_slam_pp.frontend.backbones.colmap_camera import parameter_names
+
+        names = parameter_names(cam.get("model", "OPENCV"))
+        print(f"camera ({cam['source']}, {cam.get('model', 'OPENCV')}): {names} = " + " ".join(f"{v:.4g}" for v in cam["params"]))
     if "loops_accepted" in report:
         print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected (of which "
               f"{report.get('loops_pending', 0)} verified without a consistent second loop, "

@@ -11,13 +11,14 @@ Matching: all pairs within the submap (``matcher="exhaustive"``, default) or seq
 on the EuRoC excerpt all-pairs matching lowered the odometry ATE from 0.057 to 0.048 m (calibrated)
 and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the default.
 
-* Uncalibrated (default): a shared ``OPENCV`` camera (``SIMPLE_RADIAL`` fails on the EuRoC lens,
-  SPEC 3.3), estimated on the first submap that reconstructs and then held fixed (``freeze_estimated``;
-  per-submap estimates change the focal length, hence the scale, from submap to submap). It is estimated
-  in two stages: mapped with a ``RADIAL`` camera (one focal length, two radial terms, principal point at
-  the image centre), then refined to the full model by one bundle adjustment, kept only when it stays
-  near the constrained estimate (``FULL_MODEL_TOLERANCE``). Eight free intrinsics on a forward drive gave
-  fx 416 / fy 652 px. Forward motion hardly constrains the focal length, rotation does: a later sound
+* Uncalibrated (default): a shared ``OPENCV`` or ``OPENCV_FISHEYE`` camera (``SIMPLE_RADIAL`` fails on the
+  EuRoC lens, SPEC 3.3), estimated on the first submap that reconstructs and then held fixed
+  (``freeze_estimated``; per-submap estimates change the focal length, hence the scale, from submap to
+  submap). It is estimated in two stages: mapped with a ``RADIAL`` camera (one focal length, two radial
+  terms, principal point at the image centre), then, in each family of ``colmap_camera``, refined to the
+  full model by one bundle adjustment, kept only when it stays near its constrained estimate
+  (``FULL_MODEL_TOLERANCE``); the family whose model explains the images better is kept (``_full_model``).
+  Eight free intrinsics on a forward drive gave fx 416 / fy 652 px. Forward motion hardly constrains the focal length, rotation does: a later sound
   submap that turns at least twice as much as the one the camera came from refines it (``_refocus``).
   When every attempt with the held camera is folded (below) or registers fewer than half the frames,
   the submap is mapped again with the camera estimated, and a sane estimate from a fold-free
@@ -48,9 +49,8 @@ Determinism: feature extraction, matching and mapping run on one thread unless `
 (multi-threaded, repeated runs of one submap differed by up to 8 cm); the mappers' and the fold check's
 random seeds are the run's seed (plus the attempt's offset). docs/frontend.md gives the measured cost.
 
-Estimated intrinsics must be physically sensible (``intrinsics_sane``: focal 0.3-4x the image's larger
-side, aspect within 10 %, principal point in the middle 40 %, |k1|, |k2| < 1, |p1|, |p2| < 0.05);
-an estimate outside the bounds is not adopted (logged).
+Estimated intrinsics must be physically sensible (``colmap_camera.intrinsics_sane``); an estimate outside the
+bounds is not adopted (logged).
 """
 
 from __future__ import annotations
@@ -66,6 +66,15 @@ import cv2
 import numpy as np
 
 from vggt_slam_pp.frontend.backbones.base import Backbone
+from vggt_slam_pp.frontend.backbones.colmap_camera import (
+    CONSTRAINED,
+    FULL_MODELS,
+    MODEL_CHOICE_MARGIN,
+    constrained_start,
+    far_from,
+    full_start,
+    intrinsics_sane,
+)
 from vggt_slam_pp.frontend.backbones.colmap_checks import (
     FoldCheckConfig,
     PairCheck,
@@ -145,44 +154,6 @@ def _view_spread(rec) -> float:
 
 FOLD_CHECK = FoldCheckConfig()  # the default check of reconstructions against their matches (colmap_checks.py)
 
-# how far the full camera model may move from the constrained estimate it is refined from (``_full_model``):
-# focal lengths (relative), their ratio, and the principal point from the image centre (fraction of each side)
-FULL_MODEL_TOLERANCE = {"focal": 0.05, "aspect": 0.03, "principal_point": 0.05}
-
-
-def _far_from(params: list[float], f: float, width: int, height: int) -> str:
-    """Why OPENCV ``params`` are too far from a constrained estimate with focal ``f`` (FULL_MODEL_TOLERANCE),
-    or ""."""
-    fx, fy, cx, cy = params[:4]
-    tol = FULL_MODEL_TOLERANCE
-    if abs(0.5 * (fx + fy) / f - 1) > tol["focal"]:
-        return f"focal {0.5 * (fx + fy):.1f} px, {f:.1f} px constrained"
-    if abs(fx / fy - 1) > tol["aspect"]:
-        return f"focal lengths {fx:.1f} and {fy:.1f} px"
-    if abs(cx - width / 2) > tol["principal_point"] * width or abs(cy - height / 2) > tol["principal_point"] * height:
-        return f"principal point ({cx:.0f}, {cy:.0f}) moved from the centre"
-    return ""
-
-
-def intrinsics_sane(params, width: int, height: int, model: str = "OPENCV") -> str:
-    """Why ``params`` of an OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) or RADIAL (f, cx, cy, k1, k2) camera
-    are implausible for a ``width`` x ``height`` image, or "" when they are sensible."""
-    if model == "RADIAL":
-        f, cx, cy, k1, k2 = (float(v) for v in params)
-        params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
-    fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in params)
-    side = max(width, height)
-    if not 0.3 * side <= fx <= 4 * side or not 0.3 * side <= fy <= 4 * side:
-        return f"focal length {fx:.0f}/{fy:.0f} px outside 0.3-4x the image side ({side} px)"
-    if abs(fx / fy - 1) > 0.1:
-        return f"focal lengths {fx:.0f} and {fy:.0f} px differ by more than 10 %"
-    if not (0.3 * width <= cx <= 0.7 * width and 0.3 * height <= cy <= 0.7 * height):
-        return f"principal point ({cx:.0f}, {cy:.0f}) far from the image centre"
-    if abs(k1) >= 1 or abs(k2) >= 1 or abs(p1) >= 0.05 or abs(p2) >= 0.05:
-        return f"distortion ({k1:.3g}, {k2:.3g}, {p1:.3g}, {p2:.3g}) out of bounds"
-    return ""
-
-
 class ColmapBackbone(Backbone):
     name = "colmap"
     dense = False
@@ -244,7 +215,7 @@ class ColmapBackbone(Backbone):
         self._features = Path(tempfile.mkdtemp(prefix="vggt_slam_features_")) if keep_features else None
         if self._features is not None:
             weakref.finalize(self, shutil.rmtree, str(self._features), True)
-        self._estimated: tuple[tuple[int, int], list[float]] | None = None  # (size, OPENCV params)
+        self._estimated: tuple[tuple[int, int], list[float], str] | None = None  # (size, params, model)
         self.camera: dict = {}  # the shared camera for the report: model, params, source, history
         self._span = (0, 0)  # first and last frame index of the submap being reconstructed
 
@@ -278,6 +249,7 @@ class ColmapBackbone(Backbone):
             reader.camera_params = ",".join(str(float(v)) for v in [cam.fx, cam.fy, cam.cx, cam.cy, *dist])
         elif self._estimated is not None and self._estimated[0] == (frame.width, frame.height):
             # uncalibrated: start from the intrinsics the previous submap estimated (still refined)
+            reader.camera_model = self._estimated[2]
             reader.camera_params = ",".join(str(float(v)) for v in self._estimated[1])
         elif self.estimate_model and self.estimate_model != self.camera_model:
             reader.camera_model = self.estimate_model  # estimated in two stages (_full_model)
@@ -390,6 +362,8 @@ class ColmapBackbone(Backbone):
 
         if self.estimate_model and self.estimate_model != self.camera_model and self._estimated is not None:
             fx, fy, _, _, k1, k2 = self._estimated[1][:6]
+            if self._estimated[2] != "OPENCV":  # another model's terms mean something else: start undistorted
+                k1 = k2 = 0.0
             database = pycolmap.Database.open(db)
             try:
                 cam = database.read_all_cameras()[0]
@@ -408,46 +382,78 @@ class ColmapBackbone(Backbone):
 
     def _full_model(self, rec):
         """Stage 2 of estimating the camera: ``rec`` was mapped with the constrained ``estimate_model`` (one
-        focal length, radial distortion, principal point at the image centre); its camera becomes
-        ``camera_model`` (OPENCV) with the same projection, and one bundle adjustment refines every
-        intrinsic from there. The refinement is kept when it is sane and stays near the constrained estimate
-        (``FULL_MODEL_TOLERANCE``); otherwise ``rec`` keeps the constrained estimate, in the full model."""
+        focal length, radial distortion, principal point at the image centre). For each family of models
+        (``colmap_camera``: ``camera_model`` first) the constrained model is fitted from there (the other
+        family's by one bundle adjustment), then the full model from it: one bundle adjustment with every
+        intrinsic free, counted when it keeps at least 90 % of the points, does not raise the reprojection error,
+        is sane and stays near its constrained estimate (``FULL_MODEL_TOLERANCE``); otherwise the family keeps its
+        constrained estimate. ``camera_model``'s family is kept unless another's mean reprojection error is lower
+        by ``MODEL_CHOICE_MARGIN``. The result is a reconstruction with a full-model camera."""
         import pycolmap
 
         cam = next(iter(rec.cameras.values()))
         params = [float(v) for v in cam.params]
         if cam.model.name == "SIMPLE_RADIAL":
-            f, cx, cy, k1 = params
-            k2 = 0.0
-        elif cam.model.name == "RADIAL":
-            f, cx, cy, k1, k2 = params
-        else:
+            params.append(0.0)
+        elif cam.model.name != "RADIAL":
             return rec
-        cam.model = self.camera_model
-        cam.params = [f, f, cx, cy, k1, k2, 0.0, 0.0]
+        width, height = int(cam.width), int(cam.height)
+        before = rec.compute_mean_reprojection_error()
+        fits = []  # (full model, its family's result, mean reprojection error)
+        for model in (self.camera_model, *(m for m in FULL_MODELS if m != self.camera_model)):
+            base = rec
+            if CONSTRAINED[model] != "RADIAL":
+                start = constrained_start(CONSTRAINED[model], *params, width, height)
+                base = self._refined(rec, CONSTRAINED[model], start, None, before, refine_principal_point=False)
+                if base is None:
+                    continue
+            constrained = [float(v) for v in next(iter(base.cameras.values())).params]
+            error = base.compute_mean_reprojection_error()
+            full = self._refined(base, model, full_start(CONSTRAINED[model], constrained), constrained[0], error)
+            if full is None:  # the family keeps its constrained estimate, as the full model
+                full = pycolmap.Reconstruction(base)
+                fcam = next(iter(full.cameras.values()))
+                fcam.model, fcam.params = model, full_start(CONSTRAINED[model], constrained)
+            fits.append((model, full, full.compute_mean_reprojection_error()))
+        default = next((c for c in fits if c[0] == self.camera_model), None)
+        better = min((c for c in fits if c[0] != self.camera_model), key=lambda c: c[2], default=None)
+        use_better = better is not None and (default is None or better[2] < (1 - MODEL_CHOICE_MARGIN) * default[2])
+        chosen = better if use_better else default
+        log.info("colmap: %s camera from the %s estimate (f %.1f px); reprojection error %s", chosen[0],
+                 self.estimate_model, params[0], ", ".join(f"{m} {e:.3f} px" for m, _, e in fits))
+        return chosen[1]
+
+    def _refined(self, rec, model: str, start: list[float], f: float | None, before: float,
+                 refine_principal_point: bool | None = None):
+        """A copy of ``rec`` with its camera made ``model`` at ``start`` and refined by one bundle adjustment
+        (``_full_model``), or None when that fails or is not kept (logged): fewer than 90 % of the points left,
+        the mean reprojection error above ``before``, insane, or (with ``f``) too far from that constrained focal
+        length."""
+        import pycolmap
+
         refined = pycolmap.Reconstruction(rec)
+        cam = next(iter(refined.cameras.values()))
+        cam.model = model
+        cam.params = start
         try:
-            self._refine_camera(refined, self.refine_principal_point)
+            self._refine_camera(refined, self.refine_principal_point if refine_principal_point is None
+                                else refine_principal_point)
             # points the refined distortion cannot project any more (beyond its valid radius) are dropped
             pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
-            log.warning("colmap: refining the %s camera failed (%s); keeping the %s estimate", self.camera_model,
-                        exc, self.estimate_model)
-            return rec
+            log.warning("colmap: refining the %s camera failed (%s)", model, exc)
+            return None
         kept = refined.num_points3D() / max(rec.num_points3D(), 1)
-        if not kept >= 0.9 or not refined.compute_mean_reprojection_error() <= rec.compute_mean_reprojection_error():
-            log.info("colmap: the %s refinement of the camera is not kept (%.0f %% of the points left); %s "
-                     "estimate f %.1f px, k %.3g %.3g", self.camera_model, 100 * kept, self.estimate_model, f, k1, k2)
-            return rec
-        full = [float(v) for v in next(iter(refined.cameras.values())).params]
-        why = intrinsics_sane(full, int(cam.width), int(cam.height)) or _far_from(full, f, int(cam.width),
-                                                                                  int(cam.height))
+        error = refined.compute_mean_reprojection_error()
+        params = [float(v) for v in next(iter(refined.cameras.values())).params]
+        width, height = int(cam.width), int(cam.height)
+        why = ("" if kept >= 0.9 else f"{100 * kept:.0f} % of the points left") or \
+            ("" if error <= before else f"reprojection error {before:.3f} -> {error:.3f} px") or \
+            intrinsics_sane(params, width, height, model) or \
+            (far_from(params, f, width, height) if f is not None else "")
         if why:
-            log.info("colmap: the %s refinement of the camera is not kept (%s); %s estimate f %.1f px, k %.3g %.3g",
-                     self.camera_model, why, self.estimate_model, f, k1, k2)
-            return rec
-        log.info("colmap: %s camera refined from the %s estimate (f %.1f px)", self.camera_model,
-                 self.estimate_model, f)
+            log.info("colmap: the %s refinement of the camera is not kept (%s)", model, why)
+            return None
         return refined
 
     def _refine_camera(self, rec, refine_principal_point: bool) -> None:
@@ -638,7 +644,7 @@ class ColmapBackbone(Backbone):
             log.warning("colmap: estimated intrinsics not adopted: %s", why)
             self.camera = {**self.camera, "history": history}
             return
-        self._estimated = ((int(cam.width), int(cam.height)), params)
+        self._estimated = ((int(cam.width), int(cam.height)), params, cam.model.name)
         self.camera = {"model": cam.model.name, "params": params, "width": int(cam.width), "height": int(cam.height),
                        "source": source, "spread_deg": spread, "history": history}
         log.info("colmap: %s camera %s: %s", cam.model.name, source, " ".join(f"{v:.4g}" for v in params))

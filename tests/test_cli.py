@@ -215,10 +215,12 @@ def test_run_summary_says_how_many_edges_degraded(capsys):
     _print_summary(report, "out")
     out = capsys.readouterr().out
     assert "WARNING: 1 of 2 odometry edges degraded" in out and "1->2 overlap frame(s) [5] not registered" in out
-    assert "camera (estimated on keyframes 0..4)" in out
+    assert "camera (estimated on keyframes 0..4): OPENCV fx fy cx cy k1 k2 p1 p2 = 400" in out
     report["edges"][1]["degraded"] = False
+    report["camera"]["model"] = "OPENCV_FISHEYE"
     _print_summary(report, "out")
-    assert "odometry: 2 edges, none degraded" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "odometry: 2 edges, none degraded" in out and "OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4 = 400" in out
 
 
 def test_a_saved_configuration_runs_again_and_flags_override_it(tmp_path, capsys):

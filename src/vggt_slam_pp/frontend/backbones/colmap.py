@@ -18,8 +18,9 @@ and from 0.080 to 0.077 m (uncalibrated) for about 35 % more time, so it is the 
   terms, principal point at the image centre), then, in each family of ``colmap_camera``, refined to the
   full model by one bundle adjustment, kept only when it stays near its constrained estimate
   (``FULL_MODEL_TOLERANCE``); the family whose model explains the images better is kept (``_full_model``).
-  Eight free intrinsics on a forward drive gave fx 416 / fy 652 px. Forward motion hardly constrains the focal length, rotation does: a later sound
-  submap that turns at least twice as much as the one the camera came from refines it (``_refocus``).
+  Eight free intrinsics on a forward drive gave fx 416 / fy 652 px. Forward motion hardly constrains the
+  focal length, rotation does: a later sound submap that turns at least twice as much as the one the camera
+  came from refines an ``OPENCV`` camera (``_refocus``).
   When every attempt with the held camera is folded (below) or registers fewer than half the frames,
   the submap is mapped again with the camera estimated, and a sane estimate from a fold-free
   reconstruction replaces the held one.
@@ -399,22 +400,24 @@ class ColmapBackbone(Backbone):
             return rec
         width, height = int(cam.width), int(cam.height)
         before = rec.compute_mean_reprojection_error()
-        fits = []  # (full model, its family's result, mean reprojection error)
+        fits = []  # (full model, its family's result, mean reprojection error over rec's observations)
         for model in (self.camera_model, *(m for m in FULL_MODELS if m != self.camera_model)):
-            base = rec
-            if CONSTRAINED[model] != "RADIAL":
+            base, error = rec, before
+            if CONSTRAINED[model] != "RADIAL":  # fitted on rec's observations, none dropped: the errors compare
                 start = constrained_start(CONSTRAINED[model], *params, width, height)
-                base = self._refined(rec, CONSTRAINED[model], start, None, before, refine_principal_point=False)
-                if base is None:
+                found = self._refined(rec, CONSTRAINED[model], start, None, before, refine_principal_point=False,
+                                      drop_points=False)
+                if found is None:
                     continue
+                base, error = found
             constrained = [float(v) for v in next(iter(base.cameras.values())).params]
-            error = base.compute_mean_reprojection_error()
-            full = self._refined(base, model, full_start(CONSTRAINED[model], constrained), constrained[0], error)
-            if full is None:  # the family keeps its constrained estimate, as the full model
+            found = self._refined(base, model, full_start(CONSTRAINED[model], constrained), constrained[0], error)
+            if found is None:  # the family keeps its constrained estimate, as the full model
                 full = pycolmap.Reconstruction(base)
                 fcam = next(iter(full.cameras.values()))
                 fcam.model, fcam.params = model, full_start(CONSTRAINED[model], constrained)
-            fits.append((model, full, full.compute_mean_reprojection_error()))
+                found = (full, error)
+            fits.append((model, *found))
         default = next((c for c in fits if c[0] == self.camera_model), None)
         better = min((c for c in fits if c[0] != self.camera_model), key=lambda c: c[2], default=None)
         use_better = better is not None and (default is None or better[2] < (1 - MODEL_CHOICE_MARGIN) * default[2])
@@ -424,11 +427,12 @@ class ColmapBackbone(Backbone):
         return chosen[1]
 
     def _refined(self, rec, model: str, start: list[float], f: float | None, before: float,
-                 refine_principal_point: bool | None = None):
+                 refine_principal_point: bool | None = None, drop_points: bool = True):
         """A copy of ``rec`` with its camera made ``model`` at ``start`` and refined by one bundle adjustment
-        (``_full_model``), or None when that fails or is not kept (logged): fewer than 90 % of the points left,
-        the mean reprojection error above ``before``, insane, or (with ``f``) too far from that constrained focal
-        length."""
+        (``_full_model``), with its mean reprojection error over ``rec``'s observations, or None when that fails
+        or is not kept (logged): the error above ``before``, insane, (with ``f``) too far from that constrained
+        focal length, or (with ``drop_points``: the points the refined distortion cannot project any more are
+        dropped) fewer than 90 % of the points left."""
         import pycolmap
 
         refined = pycolmap.Reconstruction(rec)
@@ -438,23 +442,24 @@ class ColmapBackbone(Backbone):
         try:
             self._refine_camera(refined, self.refine_principal_point if refine_principal_point is None
                                 else refine_principal_point)
-            # points the refined distortion cannot project any more (beyond its valid radius) are dropped
-            pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
+            error = refined.compute_mean_reprojection_error()
+            if drop_points:
+                pycolmap.ObservationManager(refined).filter_all_points3D(4.0, 1.5)
         except Exception as exc:  # noqa: BLE001 - pycolmap raises plain runtime errors
             log.warning("colmap: refining the %s camera failed (%s)", model, exc)
             return None
         kept = refined.num_points3D() / max(rec.num_points3D(), 1)
-        error = refined.compute_mean_reprojection_error()
         params = [float(v) for v in next(iter(refined.cameras.values())).params]
         width, height = int(cam.width), int(cam.height)
         why = ("" if kept >= 0.9 else f"{100 * kept:.0f} % of the points left") or \
-            ("" if error <= before else f"reprojection error {before:.3f} -> {error:.3f} px") or \
+            ("" if refined.compute_mean_reprojection_error() <= before
+             else f"reprojection error {before:.3f} -> {refined.compute_mean_reprojection_error():.3f} px") or \
             intrinsics_sane(params, width, height, model) or \
             (far_from(params, f, width, height) if f is not None else "")
         if why:
             log.info("colmap: the %s refinement of the camera is not kept (%s)", model, why)
             return None
-        return refined
+        return refined, error
 
     def _refine_camera(self, rec, refine_principal_point: bool) -> None:
         """One bundle adjustment of ``rec`` in place with its camera's focal length and distortion free (and

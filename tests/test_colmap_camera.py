@@ -67,17 +67,34 @@ def test_the_full_camera_model_is_the_one_that_explains_the_images(lens, model, 
     rec = _reconstruction(lens)
     backbone._refine_camera(rec, refine_principal_point=False)  # stage 1
     assert next(iter(rec.cameras.values())).model.name == "RADIAL"
+    f_stage1 = float(next(iter(rec.cameras.values())).params[0])
     full = backbone._full_model(rec)
+    assert next(iter(rec.cameras.values())).model.name == "RADIAL"  # the input is left as it was
+    assert "OPENCV 0." in caplog.text  # both families were tried; through the pinhole, the equidistant one fits
+    # its constrained model worse than RADIAL does, and goes no further
+    assert ("OPENCV_FISHEYE 0." if model == "OPENCV_FISHEYE" else "RADIAL_FISHEYE refinement of the camera is not kept"
+            ) in caplog.text
     cam = next(iter(full.cameras.values()))
     assert cam.model.name == model
     f_true = 0.5 * (lens[1][0] + lens[1][1])
     assert abs(0.5 * (cam.params[0] + cam.params[1]) / f_true - 1) < 0.005, (cam.params, f_true)
     assert intrinsics_sane(cam.params, W, H, model) == ""
-    if model == "OPENCV_FISHEYE":  # the polynomial in r, the default, explains these images worse
-        assert "OPENCV 0." in caplog.text  # (both families were fitted)
-        rec = _reconstruction(lens)
-        backbone._refine_camera(rec, refine_principal_point=False)
-        assert next(iter(rec.cameras.values())).params[0] > 1.04 * f_true  # stage 1 (RADIAL) is long
+    if model == "OPENCV_FISHEYE":
+        assert f_stage1 > 1.04 * f_true  # what the polynomial in r made of this lens
+
+
+def test_a_simple_radial_estimate_is_refined_too():
+    """The constrained estimate may also come with one radial term (``estimate_model="SIMPLE_RADIAL"``)."""
+    from vggt_slam_pp.frontend.backbones.colmap import ColmapBackbone
+
+    backbone = ColmapBackbone(calibrated=False, keep_features=False, estimate_model="SIMPLE_RADIAL")
+    rec = _reconstruction(NARROW_LENS)
+    cam = next(iter(rec.cameras.values()))
+    cam.model, cam.params = "SIMPLE_RADIAL", [cam.params[0], W / 2, H / 2, 0.0]
+    backbone._refine_camera(rec, refine_principal_point=False)
+    full = backbone._full_model(rec)
+    params = next(iter(full.cameras.values())).params
+    assert next(iter(full.cameras.values())).model.name == "OPENCV" and abs(params[0] / NARROW_LENS[1][0] - 1) < 0.01
 
 
 def test_the_equidistant_start_has_the_radial_estimates_projection():

@@ -410,7 +410,7 @@ class ColmapBackbone(Backbone):
                 if found is None:
                     continue
                 base, error = found
-            constrained = [float(v) for v in next(iter(base.cameras.values())).params]
+            constrained = params if base is rec else [float(v) for v in next(iter(base.cameras.values())).params]
             found = self._refined(base, model, full_start(CONSTRAINED[model], constrained), constrained[0], error)
             if found is None:  # the family keeps its constrained estimate, as the full model
                 full = pycolmap.Reconstruction(base)
@@ -643,7 +643,8 @@ class ColmapBackbone(Backbone):
         why = intrinsics_sane(params, int(cam.width), int(cam.height), cam.model.name)
         history = self.camera.get("history", [])
         spread = round(_view_spread(rec), 1)
-        history.append({"keyframes": list(self._span), "params": params, "registered": rec.num_reg_images(),
+        history.append({"keyframes": list(self._span), "model": cam.model.name, "params": params,
+                        "registered": rec.num_reg_images(),
                         "frames": S, "spread_deg": spread, "adopted": not why, "reason": why or source})
         if why:
             log.warning("colmap: estimated intrinsics not adopted: %s", why)

@@ -288,8 +288,9 @@ def _print_summary(report: dict, out) -> None:
         cam = report["camera"]
         from vggt_slam_pp.frontend.backbones.colmap_camera import parameter_names
 
-        names = parameter_names(cam.get("model", "OPENCV"))
-        print(f"camera ({cam['source']}): {cam.get('model', 'OPENCV')} {names} = " + " ".join(f"{v:.4g}" for v in cam["params"]))
+        model = cam.get("model", "OPENCV")
+        print(f"camera ({cam['source']}): {model} {parameter_names(model)} = "
+              + " ".join(f"{v:.4g}" for v in cam["params"]))
     if "loops_accepted" in report:
         print(f"loops: {report['loops_accepted']} accepted, {report['loops_rejected']} candidates rejected (of which "
               f"{report.get('loops_pending', 0)} verified without a consistent second loop, "

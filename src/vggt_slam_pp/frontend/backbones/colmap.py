@@ -411,11 +411,11 @@ class ColmapBackbone(Backbone):
                     continue
                 base, error = found
             constrained = params if base is rec else [float(v) for v in next(iter(base.cameras.values())).params]
-            found = self._refined(base, model, full_start(CONSTRAINED[model], constrained), constrained[0], error)
+            found = self._refined(base, model, full_start(constrained), constrained[0], error)
             if found is None:  # the family keeps its constrained estimate, as the full model
                 full = pycolmap.Reconstruction(base)
                 fcam = next(iter(full.cameras.values()))
-                fcam.model, fcam.params = model, full_start(CONSTRAINED[model], constrained)
+                fcam.model, fcam.params = model, full_start(constrained)
                 found = (full, error)
             fits.append((model, *found))
         default = next((c for c in fits if c[0] == self.camera_model), None)
@@ -449,11 +449,11 @@ class ColmapBackbone(Backbone):
             log.warning("colmap: refining the %s camera failed (%s)", model, exc)
             return None
         kept = refined.num_points3D() / max(rec.num_points3D(), 1)
+        after = refined.compute_mean_reprojection_error()
         params = [float(v) for v in next(iter(refined.cameras.values())).params]
         width, height = int(cam.width), int(cam.height)
         why = ("" if kept >= 0.9 else f"{100 * kept:.0f} % of the points left") or \
-            ("" if refined.compute_mean_reprojection_error() <= before
-             else f"reprojection error {before:.3f} -> {refined.compute_mean_reprojection_error():.3f} px") or \
+            ("" if after <= before else f"reprojection error {before:.3f} -> {after:.3f} px") or \
             intrinsics_sane(params, width, height, model) or \
             (far_from(params, f, width, height) if f is not None else "")
         if why:

@@ -29,6 +29,7 @@ FULL_MODEL_TOLERANCE = {"focal": 0.05, "aspect": 0.03, "principal_point": 0.05}
 # margin keeps the default where the two fit alike (a pinhole)
 FULL_MODELS = ("OPENCV", "OPENCV_FISHEYE")
 CONSTRAINED = {"OPENCV": "RADIAL", "OPENCV_FISHEYE": "RADIAL_FISHEYE"}
+_FULL = {constrained: full for full, constrained in CONSTRAINED.items()}
 MODEL_CHOICE_MARGIN = 0.05
 
 
@@ -74,7 +75,7 @@ def intrinsics_sane(params, width: int, height: int, model: str = "OPENCV") -> s
     image's corners."""
     values = [float(v) for v in params]
     if model in ("RADIAL", "RADIAL_FISHEYE"):
-        values, model = full_start(model, values), {v: k for k, v in CONSTRAINED.items()}[model]
+        values, model = full_start(values), _FULL[model]
     fx, fy, cx, cy = values[:4]
     side = max(width, height)
     if not 0.3 * side <= fx <= 4 * side or not 0.3 * side <= fy <= 4 * side:
@@ -112,9 +113,9 @@ def constrained_start(model: str, f: float, cx: float, cy: float, k1: float, k2:
     return [f, cx, cy, float(k[0]), float(k[1])]
 
 
-def full_start(model: str, params: list[float]) -> list[float]:
-    """The full model's parameters with the same projection as constrained ``model`` ``params`` (f, cx, cy, k1,
-    k2): fx = fy = f, the other two terms 0."""
+def full_start(params: list[float]) -> list[float]:
+    """The full model's parameters with the same projection as a constrained model's ``params`` (f, cx, cy, k1,
+    k2), in either family: fx = fy = f, the other two terms 0."""
     f, cx, cy, k1, k2 = (float(v) for v in params)
     return [f, f, cx, cy, k1, k2, 0.0, 0.0]
 

@@ -327,13 +327,14 @@ def test_a_guess_whose_structure_lies_beyond_the_icps_reach_is_not_refined(rng):
     assert not far.accepted and "within the ICP's reach" in far.reason, far.reason
 
 
-def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disagree_with(rng):
+def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disagree_with(rng, monkeypatch):
     """With the two submaps' image landmarks (``ImageCheck``), registration starts from the alignment they agree
     on where no point guess verifies, and refuses a result that they can judge and disagree with."""
     import dataclasses
 
+    from vggt_slam_pp.backend import registration
     from vggt_slam_pp.backend.appearance import AppearanceConfig, ImageCheck
-    from vggt_slam_pp.backend.registration import RegistrationConfig
+    from vggt_slam_pp.backend.registration import LoopBounds, RegistrationConfig
     from vggt_slam_pp.frontend.types import Landmarks
 
     plane = GroundPlane(np.zeros(3), np.eye(3))
@@ -361,6 +362,17 @@ def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disa
     assert r.accepted and r.guess == "odometry"  # the points verified it, and the images agree
     r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, images=other)
     assert not r.accepted and r.reason.startswith("images disagree") and r.appearance_comparable == 300
+    # an alignment beyond what odometry allows is not refined at all (ICP never runs: no point guess is in reach)
+    fits = []
+    monkeypatch.setattr(registration, "icp_point_to_plane",
+                        lambda *a, _icp=registration.icp_point_to_plane, **k: fits.append(1) or _icp(*a, **k))
+    wide = LoopBounds(max_log_scale=0.1, max_translation=50.0, max_yaw_deg=10.0)
+    assert register_loop(5, 1, seen_again, world, far, np.eye(4), plane, 2.0, bounds=wide, config=local,
+                         images=same).accepted and fits
+    fits.clear()
+    tight = LoopBounds(max_log_scale=0.1, max_translation=10.0, max_yaw_deg=10.0)  # the truth moves it 40
+    r = register_loop(5, 1, seen_again, world, far, np.eye(4), plane, 2.0, bounds=tight, config=local, images=same)
+    assert not r.accepted and "within the ICP's reach" in r.reason and not fits, r.reason
 
 
 def test_icp_stops_a_fit_that_its_check_finds_hopeless_and_is_unchanged_by_one_it_passes(rng):

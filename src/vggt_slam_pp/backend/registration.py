@@ -81,6 +81,9 @@ class RegistrationConfig:
     icp_check_share: float = 0.4  # this share of min_structure_overlap is dropped (0: never): of 1,823 fits on
     # the bench worlds, 451 ended at >= min_structure_overlap, one of them from below 0.1 here (docs/backend.md)
     inlier_radius_tiles: float = 0.2
+    reach_overlap_share: float = 0.5  # a guess is refined only if this share of min_overlap of the query, and
+    reach_structure_share: float = 1.0  # this share of min_structure_overlap of its structure, lie within
+    # icp_radius_tiles of the match (and of its structure) at the guess
     max_points: int = 4000
     icp_max_flat_points: int = 500  # ICP fits every structure point and at most this many others (drawn at
     # random, seeded; 0: all): flat ground fixes only height, tilt and scale, and would outweigh the structure
@@ -117,6 +120,8 @@ class RegistrationConfig:
     height_cue: bool = True  # cameras at one height above their ground in both submaps: their ratio is the
     # loop's scale (search.camera_height), searched within and verified against height_cue_tolerance
     height_cue_tolerance: float = 0.1  # |log s| between the loop's scale and the cameras' height ratio
+    icp_scale_reach: float = 0.05  # how far ICP's scale rounds may move a guess's |log s| (guesses further
+    # beyond the limits are not refined)
     height_cue_max_spread: float = 0.1  # robust spread (1.48 MAD / median) of a submap's camera heights for a
     # steady height
     height_cue_min_tiles: float = 0.2  # lower cameras give no cue (a ratio of tiny heights is noise)
@@ -516,6 +521,25 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""
         return cue is not None and abs(float(np.log(decompose_sim3(T)[0] / cue[0]))) > cue[1]
 
+    def outside_bounds(Z: np.ndarray, reach: float = 0.0) -> str | None:
+        """Why alignment ``Z`` (T_match_query) lies beyond the cameras' height cue or what odometry allows, or
+        None. ``reach`` > 0 widens every limit by that many ICP refinements (how far ICP may still move a
+        guess: its first radius, a yaw step, ``icp_scale_reach`` in log-scale): a guess beyond that cannot
+        end within the limits."""
+        C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
+        log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
+        if cue is not None and abs(float(np.log(decompose_sim3(Z)[0] / cue[0]))) > cue[1] + reach * c.icp_scale_reach:
+            return f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights"
+        if log_s > max_log_scale + reach * c.icp_scale_reach:
+            return f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})"
+        slack = (1.0 + reach) * c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may
+        # move a little further
+        if moved > bounds.max_translation + slack:
+            return f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows"
+        if turned > bounds.max_yaw_deg + (1.0 + reach) * c.search.yaw_step_deg:
+            return f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows"
+        return None
+
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst, cue)
     for k, (G, _) in enumerate(found):
@@ -547,9 +571,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         of 410 revisit candidates: every guess that ended at structure overlap >= 0.25 started at >= 0.36)."""
         cur = transform_points(G, src)
         d_s = struct_tree.query(cur[own_structure], distance_upper_bound=reach)[0]  # the smaller, more selective test
-        if np.isfinite(d_s).mean() < c.min_structure_overlap:
+        if np.isfinite(d_s).mean() < c.reach_structure_share * c.min_structure_overlap:
             return False
-        return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= 0.5 * c.min_overlap)
+        return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= c.reach_overlap_share * c.min_overlap)
 
     struct_hue = hue_dst[is_structure]
     radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
@@ -563,7 +587,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         # a guess is worth refining only if enough of the query, and of its structure, lies within ICP's reach
         guesses = {k: G for k, G in guesses.items() if within_reach(G)}
         if not guesses:
-            return reject(f"overlap < {0.5 * c.min_overlap:.2f} or structure overlap < {c.min_structure_overlap} "
+            return reject(f"overlap < {c.reach_overlap_share * c.min_overlap:.2f} or structure overlap < "
+                          f"{c.reach_structure_share * c.min_structure_overlap:.2f} "
                           "within the ICP's reach at every initial guess", planar_inliers=n_planar)
         if not shared:
             shared["ground_dst_tree"] = cKDTree(levelled_dst[dst_ground, :2])
@@ -636,7 +661,6 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint,
                   scale_cue=cue[0] if cue is not None else 0.0)
         C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
-        log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
         if overlap < c.min_overlap:
             return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)
         if s_overlap < c.min_structure_overlap:
@@ -647,16 +671,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             return reject(f"free space disagrees: agreement {agree:.2f} < {c.min_agreement}", **kw)
         if residual > c.max_residual_tiles * unit:
             return reject(f"residual {residual * s_m:.3f} > {c.max_residual_tiles * tile_size:.3f}", **kw)
-        if off_cue(Z):
-            return reject(f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights", **kw)
-        if log_s > max_log_scale:
-            return reject(f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})",
-                          **kw)
-        slack = c.icp_radius_tiles * tile_size  # the search bounds the initial guesses; ICP may move a little further
-        if moved > bounds.max_translation + slack:
-            return reject(f"moves the submap {moved:.1f} > {bounds.max_translation:.1f} that odometry allows", **kw)
-        if turned > bounds.max_yaw_deg + c.search.yaw_step_deg:
-            return reject(f"turns the submap {turned:.0f} deg > {bounds.max_yaw_deg:.0f} that odometry allows", **kw)
+        beyond = outside_bounds(Z)
+        if beyond:
+            return reject(beyond, **kw)
         for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
             d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
             if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
@@ -674,6 +691,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
 
     first = attempt(guesses)
     more = images.guesses() if images is not None and not first.accepted else {}
+    # a guess the refinement cannot bring within the limits would only cost an ICP (a periodic texture's
+    # landmarks agree on alignments a period apart: most first-lap candidates had one, docs/backend.md)
+    more = {k: G for k, G in more.items() if outside_bounds(G, reach=1.0) is None}
     if not more:
         return first
     # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs

@@ -81,9 +81,6 @@ class RegistrationConfig:
     icp_check_share: float = 0.4  # this share of min_structure_overlap is dropped (0: never): of 1,823 fits on
     # the bench worlds, 451 ended at >= min_structure_overlap, one of them from below 0.1 here (docs/backend.md)
     inlier_radius_tiles: float = 0.2
-    reach_overlap_share: float = 0.5  # a guess is refined only if this share of min_overlap of the query, and
-    reach_structure_share: float = 1.0  # this share of min_structure_overlap of its structure, lie within
-    # icp_radius_tiles of the match (and of its structure) at the guess
     max_points: int = 4000
     icp_max_flat_points: int = 500  # ICP fits every structure point and at most this many others (drawn at
     # random, seeded; 0: all): flat ground fixes only height, tilt and scale, and would outweigh the structure
@@ -571,9 +568,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         of 410 revisit candidates: every guess that ended at structure overlap >= 0.25 started at >= 0.36)."""
         cur = transform_points(G, src)
         d_s = struct_tree.query(cur[own_structure], distance_upper_bound=reach)[0]  # the smaller, more selective test
-        if np.isfinite(d_s).mean() < c.reach_structure_share * c.min_structure_overlap:
+        if np.isfinite(d_s).mean() < c.min_structure_overlap:
             return False
-        return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= c.reach_overlap_share * c.min_overlap)
+        return bool(np.isfinite(tree.query(cur, distance_upper_bound=reach)[0]).mean() >= 0.5 * c.min_overlap)
 
     struct_hue = hue_dst[is_structure]
     radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
@@ -587,8 +584,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         # a guess is worth refining only if enough of the query, and of its structure, lies within ICP's reach
         guesses = {k: G for k, G in guesses.items() if within_reach(G)}
         if not guesses:
-            return reject(f"overlap < {c.reach_overlap_share * c.min_overlap:.2f} or structure overlap < "
-                          f"{c.reach_structure_share * c.min_structure_overlap:.2f} "
+            return reject(f"overlap < {0.5 * c.min_overlap:.2f} or structure overlap < {c.min_structure_overlap} "
                           "within the ICP's reach at every initial guess", planar_inliers=n_planar)
         if not shared:
             shared["ground_dst_tree"] = cKDTree(levelled_dst[dst_ground, :2])

@@ -461,7 +461,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         images: the two submaps' image landmarks (:class:`~vggt_slam_pp.backend.appearance.ImageCheck`;
             optional): where they can judge the result and disagree with it, it is refused ("images
             disagree"); where the point guesses fail to verify, the alignment the landmarks agree on is one
-            more guess (``landmarks``; not rescaled to the height cue: its scale is measured).
+            more guess (``landmarks``; not rescaled to the height cue: its scale is measured), if ICP could
+            still bring it within the bounds and the cue.
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -514,9 +515,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
             guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
 
-    def off_cue(T: np.ndarray) -> bool:
-        """Whether ``T``'s scale lies outside the cameras' height cue (False without one)."""
-        return cue is not None and abs(float(np.log(decompose_sim3(T)[0] / cue[0]))) > cue[1]
+    def off_cue(T: np.ndarray, slack: float = 0.0) -> bool:
+        """Whether ``T``'s scale lies outside the cameras' height cue, widened by ``slack`` in log-scale (False
+        without one)."""
+        return cue is not None and abs(float(np.log(decompose_sim3(T)[0] / cue[0]))) > cue[1] + slack
 
     def outside_bounds(Z: np.ndarray, reach: float = 0.0) -> str | None:
         """Why alignment ``Z`` (T_match_query) lies beyond the cameras' height cue or what odometry allows, or
@@ -525,7 +527,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         end within the limits."""
         C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
         log_s, turned, moved = correction_size(C, transform_points(T_world_query, src.mean(0)[None])[0])
-        if cue is not None and abs(float(np.log(decompose_sim3(Z)[0] / cue[0]))) > cue[1] + reach * c.icp_scale_reach:
+        if off_cue(Z, reach * c.icp_scale_reach):
             return f"scale x{decompose_sim3(Z)[0]:.2f} against x{cue[0]:.2f} from the cameras' heights"
         if log_s > max_log_scale + reach * c.icp_scale_reach:
             return f"scale change x{np.exp(log_s):.2f} beyond what odometry allows (x{np.exp(max_log_scale):.2f})"

@@ -796,6 +796,9 @@ def test_wrong_candidates_at_ten_percent_of_queries_barely_change_the_result(tmp
     accepted = [c for c in graph["loop_candidates"] if c["accepted"]]
     assert all(c["appearance"] >= 0 for c in accepted)  # measured on every loop registered from points
     assert max(c["appearance"] for c in accepted) >= 10  # a look-alike's alignment scores 0-1 (docs/backend.md)
+    # each candidate keeps its registration's CPU time; one that reached ICP costs more than one refused before it
+    assert all(c["seconds"] > 0 for c in graph["loop_candidates"])
+    assert min(c["seconds"] for c in accepted) > min(c["seconds"] for c in graph["loop_candidates"])
     for rate in (0.1, 0.3):
         faulty = run(source, _synthetic_run_config(0, worker="inline", faults=FaultConfig(wrong_candidates=rate)),
                      tmp_path / f"faulty{rate}")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 
 import numpy as np
 
@@ -144,12 +145,14 @@ class LoopCloser:
                                                  "images", source=source))
                     continue
                 by_images += 1
+                t0 = time.thread_time()
                 r = image_loops.register_by_images(
                     sid, match, m.store, g.poses[sid], g.poses[match], self.bounds(match, sid), self.config.images,
                     score, slack=self.config.registration.icp_radius_tiles * self.tile_size)
             else:
+                t0 = time.thread_time()
                 r = self._register(sid, match, score, margin, res, points, colors)
-            r = dataclasses.replace(r, source=source)
+            r = dataclasses.replace(r, source=source, seconds=time.thread_time() - t0)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
                      sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
             if not r.accepted:

@@ -169,6 +169,7 @@ class LoopResult:
     # measured; backend/appearance.py)
     appearance_comparable: int = -1  # query landmarks the alignment brings near a match landmark seen from a
     # similar direction (-1: not measured)
+    seconds: float = 0.0  # CPU time of its registration and verification (the back-end's thread)
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "accepted": self.accepted, "reason": self.reason,
@@ -177,6 +178,7 @@ class LoopResult:
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
                 "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
                 "appearance": self.appearance, "appearance_comparable": self.appearance_comparable,
+                "seconds": self.seconds,
                 **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {}),
                 **({"information": self.information.tolist()} if self.information is not None else {})}
 

@@ -472,8 +472,9 @@ def test_search_refined_by_descent_finds_the_grids_alignment(rng, monkeypatch):
 
 def test_search_in_a_window_scores_as_over_the_whole_map(rng):
     """free_space_peaks with ``near`` rasterises the match only where its windows read it: the best alignment
-    in a window around the whole-map search's best scores as that alignment does, bit for bit (equal scores
-    one cell apart are a tie that either search may take)."""
+    in a window around the whole-map search's best scores as that alignment does, up to float32 rounding
+    (OpenCV's correlation rounds by the window it is given, and on some CPUs differs in the last bit; equal
+    scores a cell or two apart are then a tie that either search may take)."""
     from vggt_slam_pp.backend.search import CellMap, free_space_peaks, hue_vectors
 
     world = _place(rng)
@@ -488,9 +489,9 @@ def test_search_in_a_window_scores_as_over_the_whole_map(rng):
         at = best.A[:, :2] @ centre + best.A[:, 2]
         for radius in (2.0, 5.0):
             near = free_space_peaks(query, match, 1.0, yaws, scales, count=1, near=(at, radius))[0]
-            assert near.score == best.score
+            assert near.score == pytest.approx(best.score, rel=1e-6)
             assert near.yaw_deg == best.yaw_deg and near.scale == best.scale
-            assert np.abs(near.A - best.A).max() <= 1.0 + 1e-9
+            assert np.abs(near.A - best.A).max() <= 2.0 + 1e-9
 
 
 def test_free_space_agreement_separates_the_true_alignment_from_look_alikes(rng):

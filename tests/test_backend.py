@@ -926,6 +926,7 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
     scale change is not held against it when the cameras' heights measured that scale (monocular submaps
     drift mostly in scale, more than the model's sigma under realistic drift); its turn still is."""
+    import dataclasses
     from types import SimpleNamespace
 
     from vggt_slam_pp.backend.backend import Backend, BackendConfig
@@ -955,6 +956,13 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     # alone, a loop must clear the structure test with a margin: look-alikes sat at its edge
     assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))
     assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, structure=0.27))
+    # with lone_needs_images, only where its images could judge it (landmarks measured: appearance_comparable >= 0)
+    backend.closer.config = dataclasses.replace(backend.closer.config, lone_needs_images=True)
+    unjudged = dataclasses.replace(loop(np.eye(4), 1.0), appearance=0, appearance_comparable=12)
+    judged = dataclasses.replace(loop(np.eye(4), 1.0), appearance=40, appearance_comparable=300)
+    assert not backend.closer.odometry_consistent(unjudged)
+    assert backend.closer.odometry_consistent(judged)
+    assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))  # no landmarks: as before
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():

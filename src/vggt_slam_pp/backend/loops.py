@@ -312,11 +312,16 @@ class LoopCloser:
         registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its
         scale change is not tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry
         drifted, measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified
-        loop between the same places disagree with it (:meth:`contradicted`)."""
+        loop between the same places disagree with it (:meth:`contradicted`). With ``lone_needs_images``, a loop
+        registered from points with landmarks must also be one its images could judge (they refuse what they
+        judge and disagree with at registration)."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:
             return False  # alone, it must clear the structure test with a margin (look-alikes sit at its edge)
+        if (self.config.lone_needs_images and r.guess != "images" and 0 <= r.appearance_comparable
+                < self.config.appearance.min_comparable):
+            return False  # alone, and its images cannot judge it (a street seen the other way, a crossing)
         b = self.bounds(r.match, r.query)
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
         log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f)",

@@ -55,7 +55,7 @@ class BackendConfig:
     # matches within consistency_submaps) that disagrees with it (LoopCloser.contradicted)
     lone_needs_images: bool = False  # ... and (on) its images could judge it (appearance.min_comparable comparable
     # landmarks; loops without landmarks or registered from images are exempt): every wrong loop accepted alone in
-    # session 41's runs was one they could not judge (docs/backend.md, "Open"); off until the long runs are measured
+    # session 41's runs was one they could not judge (docs/backend.md, "Open"); off until real sequences are measured
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
     unplaced_candidates: int = 10  # its best covisible submaps by votes are all registered

@@ -137,6 +137,7 @@ class LoopCloser:
         accepted: list[LoopResult] = []
         by_images = 0
         for match, score, margin, source in self.candidates(sid, res):
+            t0 = time.thread_time()
             if self.config.images.enabled and image_loops.available(m.store, sid, match):
                 # a sparse backbone's submaps: their images verify a loop, their few shared points cannot
                 if by_images >= self.config.images.max_candidates:  # each costs seconds: kept with its reason
@@ -145,12 +146,10 @@ class LoopCloser:
                                                  "images", source=source))
                     continue
                 by_images += 1
-                t0 = time.thread_time()
                 r = image_loops.register_by_images(
                     sid, match, m.store, g.poses[sid], g.poses[match], self.bounds(match, sid), self.config.images,
                     score, slack=self.config.registration.icp_radius_tiles * self.tile_size)
             else:
-                t0 = time.thread_time()
                 r = self._register(sid, match, score, margin, res, points, colors)
             r = dataclasses.replace(r, source=source, seconds=time.thread_time() - t0)
             log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import time
 
 import numpy as np
@@ -956,13 +957,15 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     # alone, a loop must clear the structure test with a margin: look-alikes sat at its edge
     assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))
     assert not backend.closer.odometry_consistent(loop(np.eye(4), 1.0, structure=0.27))
-    # with lone_needs_images, only where its images could judge it (landmarks measured: appearance_comparable >= 0)
-    backend.closer.config = dataclasses.replace(backend.closer.config, lone_needs_images=True)
+    # (lone_needs_images, the default) and only where its images could judge it (landmarks measured:
+    # appearance_comparable >= 0)
     unjudged = dataclasses.replace(loop(np.eye(4), 1.0), appearance=0, appearance_comparable=12)
     judged = dataclasses.replace(loop(np.eye(4), 1.0), appearance=40, appearance_comparable=300)
     assert not backend.closer.odometry_consistent(unjudged)
     assert backend.closer.odometry_consistent(judged)
     assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))  # no landmarks: as before
+    backend.closer.config = dataclasses.replace(backend.closer.config, lone_needs_images=False)
+    assert backend.closer.odometry_consistent(unjudged)
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():
@@ -1587,3 +1590,27 @@ def test_the_images_tell_a_loop_from_a_look_alike_alignment():
     s, R, t = decompose_sim3(sim3_inverse(truth) @ found[0])
     assert abs(np.log(s)) < 0.02 and np.degrees(np.linalg.norm(so3_log(R))) < 1.0 and np.linalg.norm(t) < 0.3
     assert landmark_alignment(elsewhere, a, 2.0, 50, 12) is None
+
+
+def test_a_first_submap_without_a_ground_plane_leaves_the_dem_plane_to_the_next(tmp_path, rng, caplog):
+    """A camera that starts still gives a first submap of a few points (COLMAP cannot triangulate without
+    parallax): the back-end keeps it in the graph without a DEM layer, warns, and fits the DEM plane to the
+    next submap instead of failing the run."""
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig, SubmapMessage
+    from vggt_slam_pp.frontend.types import OdometryEdge
+
+    backend = Backend(BackendConfig(), SubmapStore(tmp_path / "s"))
+    ground = np.c_[rng.uniform(-15, 15, (6000, 2)), rng.uniform(0, 0.05, 6000)]
+    boxes = np.c_[rng.uniform(-3, 3, (3000, 2)), rng.uniform(0, 2.0, 3000)]
+    backend.map.store.put(0, rng.normal(size=(4, 3)))
+    backend.map.store.put(1, np.r_[ground, boxes])
+    cams = np.array([[0.0, 0.0, 1.5], [1.0, 0.0, 1.5]])
+    with caplog.at_level(logging.WARNING):
+        backend.add_submap(SubmapMessage(0, cams, None))
+    assert backend.map.gallery.grid is None and "submap 0: no DEM plane" in caplog.text
+    step = OdometryEdge(0, 1, make_sim3(1.0, np.eye(3), np.array([1.0, 0.0, 0.0])), 0.01, 1.0, 100, "points")
+    backend.add_submap(SubmapMessage(1, cams, step))
+    grid = backend.map.gallery.grid
+    assert grid is not None and abs(grid.plane.normal[2]) > 0.99  # the second submap's ground
+    assert backend.map.in_gallery(1) and not backend.map.in_gallery(0)
+    assert set(backend.map.graph.poses) == {0, 1}

@@ -41,6 +41,7 @@ from vggt_slam_pp.backend.places import CovisibilityStage, Gallery
 from vggt_slam_pp.backend.registration import LoopResult
 from vggt_slam_pp.backend.search import camera_height
 from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.errors import DemError
 from vggt_slam_pp.frontend.types import OdometryEdge
 from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
 from vggt_slam_pp.resources import rss_mb
@@ -145,17 +146,17 @@ class Backend:
         m.add_submap(sid, msg.odometry, points, msg.camera_centers)
         self._measure_height(sid, points, msg.camera_centers)
         accepted: list[LoopResult] = []
-        if len(points) >= 3 and not query and m.gallery.grid is not None:
+        first = m.gallery.grid is None
+        if len(points) >= 3 and not query and not first:
             t0 = time.perf_counter()
             if m.index_new:
                 m.index_layer(sid, m.gallery.describe(sid, m.layer_points(sid)))
             self.skipped.append(sid)
             self._deferred.append((sid, msg.camera_centers, len(self.seconds)))
             self.timings["covisibility_s"] += time.perf_counter() - t0
-        elif len(points) >= 3:
-            first = m.gallery.grid is None
+        elif len(points) >= 3 and (not first or self._fit_grid(sid, msg.camera_centers)):
             accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
-            if first:  # the first submap: the DEM plane exists only now
+            if first:  # the first submap with a layer: the DEM plane exists only now
                 self._measure_height(sid, points, msg.camera_centers)
         if accepted:
             self._solve_for(sid, accepted)
@@ -171,6 +172,22 @@ class Backend:
         if len(self.seconds) % 10 == 0:
             self.memory_trace.append((len(self.seconds), snap.rss_mb))
         return snap
+
+    def _fit_grid(self, sid: int, camera_centers: np.ndarray | None) -> bool:
+        """Fit the DEM plane and grid to submap ``sid`` (the first one with points); False, with a warning,
+        where its points hold no ground plane (a few points: a camera that started still, a failed
+        reconstruction): it joins the graph without a layer, and the next submap is tried."""
+        m, t0 = self.map, time.perf_counter()
+        try:
+            m.gallery.ensure_grid(m.layer_points(sid), transform_points(m.graph.poses[sid], camera_centers)
+                                  if camera_centers is not None else None, None)
+        except DemError as e:
+            log.warning("submap %d: no DEM plane from its points (%s); it joins the map without a DEM layer, "
+                        "and the next submap is tried", sid, e)
+            return False
+        finally:
+            self.timings["covisibility_s"] += time.perf_counter() - t0
+        return True
 
     def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None) -> None:
         """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_height`,

@@ -53,9 +53,9 @@ class BackendConfig:
     # (verification asks 0.25 of every loop; wrong ones accepted alone sat at 0.25-0.27: docs/backend.md)
     lone_needs_no_contradiction: bool = True  # ... and no verified loop between the same places (queries and
     # matches within consistency_submaps) that disagrees with it (LoopCloser.contradicted)
-    lone_needs_images: bool = False  # ... and (on) its images could judge it (appearance.min_comparable comparable
+    lone_needs_images: bool = True  # ... and its images could judge it (appearance.min_comparable comparable
     # landmarks; loops without landmarks or registered from images are exempt): every wrong loop accepted alone in
-    # session 41's runs was one they could not judge (docs/backend.md, "Open"); off until real sequences are measured
+    # session 41's runs was one they could not judge, every judged one was right (docs/backend.md, loop acceptance)
     min_loop_weight: float = 0.05  # at the end, loops the robust graph weighs less leave it (reported rejected)
     unplaced_headings: int = 8  # a submap not yet placed in the map also queries turned by 360 / this
     unplaced_candidates: int = 10  # its best covisible submaps by votes are all registered

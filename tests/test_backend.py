@@ -1614,3 +1614,41 @@ def test_a_first_submap_without_a_ground_plane_leaves_the_dem_plane_to_the_next(
     assert grid is not None and abs(grid.plane.normal[2]) > 0.99  # the second submap's ground
     assert backend.map.in_gallery(1) and not backend.map.in_gallery(0)
     assert set(backend.map.graph.poses) == {0, 1}
+
+
+def test_heights_give_no_scale_when_the_cameras_climb_with_them(tmp_path, rng):
+    """A car's camera keeps one height above the road: its heights' changes between nearby submaps are
+    odometry's scale drift, whatever the road does. A drone's height changes as it climbs, and odometry sees
+    the climb: once the climb explains the heights' changes, the recording's heights leave the graph and
+    give no scale (no height factors, no height cue for its loops)."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.frontend.types import OdometryEdge
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    def recording(altitudes, drift):
+        m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / f"s{len(list(tmp_path.iterdir()))}"),
+                Gallery(HogEncoder(), CovisibilityConfig()))
+        kept = []
+        for i, (z, s) in enumerate(zip(altitudes, drift, strict=True)):
+            step = make_sim3(s, np.eye(3), np.array([5.0, 0.0, 0.0]))  # each submap's own scale error
+            m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "points") if i else None, np.zeros((0, 3)))
+            scale = decompose_sim3(m.odometry_poses[i])[0]  # odometry's units per submap unit
+            kept.append(m.set_height(i, z * rng.uniform(0.98, 1.02) / scale, altitude=z))
+        return m, kept
+
+    n = 12
+    walk = np.exp(rng.normal(0.0, 0.05, n))  # the realistic profile's scale drift per submap
+    road = 1.6 + np.cumsum(rng.normal(0.0, 0.3, n))  # hills, tilt: the camera's altitude above the first plane
+    car, kept = recording(np.full(n, 1.6), walk)
+    assert all(kept) and not car.flying and len(car.graph.heights) == n
+    # the heights are the car's whatever its altitude above the DEM plane (a hill): still a scale
+    hilly = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "hill"), Gallery(HogEncoder(), CovisibilityConfig()))
+    for i in range(n):
+        hilly.add_submap(i, OdometryEdge(i - 1, i, make_sim3(walk[i], np.eye(3), np.array([5.0, 0.0, 0.0])), 0.01,
+                                         1.0, 100, "points") if i else None, np.zeros((0, 3)))
+        assert hilly.set_height(i, 1.6 / decompose_sim3(hilly.odometry_poses[i])[0], altitude=road[i])
+    assert not hilly.flying
+    drone, kept = recording(1.5 + 0.5 * np.sin(np.arange(n)), np.exp(rng.normal(0.0, 0.01, n)))
+    assert kept[:4] == [True] * 4 and not any(kept[6:])  # decided once enough pairs show the climb
+    assert drone.flying == {0} and not drone.graph.heights and drone.height_near(3) is None

@@ -111,7 +111,8 @@ class Backend:
             encoder = load(ENCODERS, config.encoder, "encoder", RetrievalError).from_config(config.encoder_weights)
         gallery = Gallery(encoder, config.covisibility)
         self.map = Map(PoseGraph(config.graph), store, gallery, config.dem_max_points,
-                       config.relocate_min_shift_tiles, config.relocate_budget, config.relocate_per_submap)
+                       config.relocate_min_shift_tiles, config.relocate_budget, config.relocate_per_submap,
+                       config.altitude_min_pairs, config.altitude_explained)
         self.stage = CovisibilityStage(gallery)
         self.closer = LoopCloser(config, self.map)
         self.covisibility: list[CovisibilityEdge] = []
@@ -199,14 +200,18 @@ class Backend:
         m, c = self.map, self.config.registration
         grid = m.gallery.grid
         if grid is None or camera_centers is None or len(points) < 10 or sid in m.graph.heights or not (
-                self.config.graph.height_factors or c.height_cue):
+                self.config.graph.height_factors or c.height_cue) or m.segment[sid] in m.flying:
             return
         s, R, _ = decompose_sim3(m.graph.poses[sid])
         h = camera_height(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,
                           c.max_up_tilt_deg, c.height_cue_max_spread, seed=sid)
         if h is None or h * s < c.height_cue_min_tiles * grid.tile_size:  # a ratio of tiny heights is noise
             return
-        m.set_height(sid, h)
+        # the cameras' altitude above the DEM plane as odometry placed them (not the graph: heights move it)
+        T = m.odometry_poses[sid]
+        altitude = float(np.median((transform_points(T, camera_centers) - grid.plane.origin) @ grid.plane.normal))
+        if not m.set_height(sid, h, altitude):
+            return
         if self.config.graph.height_factors and m.segment[sid] != sid and m.graph.scale_noise() is not None:
             t0 = time.perf_counter()
             m.graph.optimize({sid})

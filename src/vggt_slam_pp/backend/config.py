@@ -46,6 +46,10 @@ class BackendConfig:
     relocate_per_submap: float = 4.0  # ... and at most this many per new submap on average (a revisit's loops
     # move hundreds of layers again and again: its cost per submap stays flat); <= 0: no such limit
     cache_submaps: int = 8
+    altitude_min_pairs: int = 5  # a recording's heights give no scale once, over at least this many pairs of
+    altitude_explained: float = 0.5  # nearby submaps with heights, the cameras' climb above the ground plane (in
+    # odometry) explains more than this share of the heights' changes: a flying or hand-held camera
+    # (Map.set_height; cars and walkers measured 0.86-800, drone and hand-held trajectories 0.00-0.26)
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles

@@ -45,7 +45,8 @@ def subsample(points: np.ndarray, n: int) -> np.ndarray:
 class Map:
     def __init__(self, graph: PoseGraph, store: SubmapStore, gallery: Gallery, layer_max_points: int = 200_000,
                  relocate_min_shift_tiles: float = 0.25, relocate_budget: int = 64,
-                 relocate_per_submap: float = 0.0) -> None:
+                 relocate_per_submap: float = 0.0, altitude_min_pairs: int = 5,
+                 altitude_explained: float = 0.5) -> None:
         self.graph = graph
         self.store = store
         self.gallery = gallery
@@ -64,6 +65,12 @@ class Map:
         self._stale: set[int] = set()  # layers that moved enough but wait for a refresh with budget left
         self.degraded_edges: set[int] = set()  # i of the degraded odometry edges i -> i + 1
         self.prior_poses: dict[int, np.ndarray] = {}  # a seeded map's submaps at their saved poses (its frame)
+        self.altitude_min_pairs = altitude_min_pairs
+        self.altitude_explained = altitude_explained
+        # per segment: (last submap with a height, its altitude, its height in odometry units) and the sums
+        # sum (dlog H - climb)^2, sum dlog H^2, pairs (set_height)
+        self._altitude: dict[int, tuple[tuple[int, float, float] | None, float, float, int]] = {}
+        self.flying: set[int] = set()  # segments whose cameras' height follows their altitude: no height cue
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
@@ -125,10 +132,45 @@ class Map:
                     return h * decompose_sim3(self.graph.poses[k])[0] / s
         return None
 
-    def set_height(self, sid: int, height: float) -> None:
+    def set_height(self, sid: int, height: float, altitude: float | None = None) -> bool:
         """Submap ``sid``'s cameras stand ``height`` (its units) above its ground: a height factor in the
-        graph, one world height per recording (segment)."""
-        self.graph.add_height(sid, height, self.segment[sid])
+        graph, one world height per recording (segment). Returns whether it was kept.
+
+        ``altitude``: the cameras' median height above the DEM plane where odometry placed them (world units).
+        A height gives the submap's scale only if the camera keeps one height above the ground (a car, a
+        walker): then, between nearby submaps, its changes are odometry's scale drift and noise, not a climb.
+        A drone's or a hand-held camera's height changes as it climbs, and odometry sees the climb: over
+        pairs of nearby submaps with heights (at most 3 apart, no degraded edge between), once the climb
+        ``(altitude_b - altitude_a) / mean height`` explains more than ``altitude_explained`` of the changes of
+        ``log`` height in odometry units (``sum (dlog H - climb)^2 < (1 - altitude_explained) sum dlog H^2``, at
+        least ``altitude_min_pairs`` pairs), the recording's heights leave the graph and none is kept again
+        (:attr:`flying`; no height cue for its loops either, :meth:`height_near`)."""
+        seg = self.segment[sid]
+        if seg in self.flying:
+            return False
+        if altitude is not None and self._climbs(sid, height, altitude):
+            self.flying.add(seg)
+            dropped = [i for i, (_, g) in self.graph.heights.items() if g == seg]
+            self.graph.drop_heights(seg)
+            log.info("recording %d: its cameras' height follows their altitude (a flying or hand-held camera): "
+                     "%d heights dropped, no scale from heights", seg, len(dropped))
+            return False
+        self.graph.add_height(sid, height, seg)
+        return True
+
+    def _climbs(self, sid: int, height: float, altitude: float) -> bool:
+        """Add submap ``sid``'s height and altitude to its segment's sums (:meth:`set_height`); whether the
+        segment's climb now explains its heights."""
+        seg = self.segment[sid]
+        last, num, den, pairs = self._altitude.get(seg, (None, 0.0, 0.0, 0))
+        H = float(decompose_sim3(self.odometry_poses[sid])[0]) * float(height)  # odometry's units
+        if last is not None and 0 < sid - last[0] <= 3 and not any(
+                i in self.degraded_edges for i in range(last[0], sid)):
+            climb = (altitude - last[1]) / (0.5 * (H + last[2]))
+            change = float(np.log(H / last[2]))
+            num, den, pairs = num + (change - climb) ** 2, den + change ** 2, pairs + 1
+        self._altitude[seg] = ((sid, float(altitude), H), num, den, pairs)
+        return pairs >= self.altitude_min_pairs and num < (1.0 - self.altitude_explained) * den
 
     def _levelled_start(self, points: np.ndarray, camera_centers: np.ndarray | None) -> np.ndarray:
         """The pose [4,4] of a recording's first submap beside a map: its own ground plane (fitted to its

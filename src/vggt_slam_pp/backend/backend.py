@@ -176,8 +176,8 @@ class Backend:
 
     def _fit_grid(self, sid: int, camera_centers: np.ndarray | None) -> bool:
         """Fit the DEM plane and grid to submap ``sid`` (the first one with points); False, with a warning,
-        where its points hold no ground plane (a few points: a camera that started still, a failed
-        reconstruction): it joins the graph without a layer, and the next submap is tried."""
+        where its points hold no ground plane (a few points: a camera without parallax, a start the
+        backbone could not reconstruct): it joins the graph without a layer, and the next submap is tried."""
         m, t0 = self.map, time.perf_counter()
         try:
             m.gallery.ensure_grid(m.layer_points(sid), transform_points(m.graph.poses[sid], camera_centers)

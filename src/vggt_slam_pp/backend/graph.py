@@ -176,11 +176,13 @@ class PoseGraph:
         self.heights[i] = (float(height), int(group))
         self.height_refs.setdefault(int(group), float(decompose_sim3(self.poses[i])[0]) * float(height))
 
-    def drop_heights(self, group: int) -> None:
-        """Remove the heights of recording ``group`` and its world height (they give no scale)."""
-        self.heights = {i: h for i, h in self.heights.items() if h[1] != group}
+    def drop_heights(self, group: int) -> int:
+        """Remove the heights of recording ``group`` and its world height (they give no scale); how many."""
+        kept = {i: h for i, h in self.heights.items() if h[1] != group}
+        dropped, self.heights = len(self.heights) - len(kept), kept
         self.height_refs.pop(int(group), None)
         self._scale_noise_at = None
+        return dropped
 
     def add_edge(self, edge: Edge) -> None:
         for n in (edge.i, edge.j):

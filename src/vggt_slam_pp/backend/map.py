@@ -150,10 +150,9 @@ class Map:
             return False
         if altitude is not None and self._climbs(sid, height, altitude):
             self.flying.add(seg)
-            dropped = [i for i, (_, g) in self.graph.heights.items() if g == seg]
-            self.graph.drop_heights(seg)
+            dropped = self.graph.drop_heights(seg)
             log.info("recording %d: its cameras' height follows their altitude (a flying or hand-held camera): "
-                     "%d heights dropped, no scale from heights", seg, len(dropped))
+                     "%d heights dropped, no scale from heights", seg, dropped)
             return False
         self.graph.add_height(sid, height, seg)
         return True

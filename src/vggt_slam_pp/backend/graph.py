@@ -137,7 +137,7 @@ class PoseGraph:
         self.anchors: set[int] = set()
         self.heights: dict[int, tuple[float, int]] = {}  # node -> (its cameras' height in its units, group)
         self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
-        self._scale_noise_at: tuple[int, tuple[float, float] | None] | None = None  # (heights, scale_noise())
+        self._scale_noise_at: tuple[int, tuple[float, float] | None] | None = None  # (heights, height_variogram())
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -196,19 +196,16 @@ class PoseGraph:
         self.edges.append(edge)
 
     # -- solving --------------------------------------------------------------------------------
-    def scale_noise(self) -> tuple[float, float] | None:
-        """``(odometry scale sigma, height sigma)`` for the solve, measured from the data, or None (too few
-        heights: the heights then stay out of the graph).
+    def height_variogram(self) -> tuple[float, float] | None:
+        """``(sigma_o, sigma_h)`` measured from the heights: the odometry's scale random walk per submap and the
+        heights' own noise (log-scale), or None while too few heights lie on chains of odometry to measure them
+        (fewer than ``height_min_edges`` differences at 3 lags or more).
 
         Along a chain of non-degraded odometry edges, at the submaps with heights, ``y_k = log(S_k h_k)``
-        (``S_k`` the chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights' own
-        noise, so the robust variance of ``y_k - y_{k-L}`` is ``L sigma_o^2 + 2 sigma_h^2`` (a variogram):
-        a line fitted over lags 1..``height_lags`` gives both. Heights are used only when ``sigma_o`` is at
-        least ``min_scale_drift`` (a monocular front-end that drifts 6 % per submap, the realistic profile:
-        yes; the default profile's, under 1 %: no), weighted by the measured ratio: the odometry sigma is
-        ``odometry_scale_sigma`` or the measured one if larger (up to ``max_odometry_scale_sigma``), the
-        height sigma keeps the measured ratio to it. Cached: measured again when the number of heights has
-        grown by 5 %."""
+        (``S_k`` the chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights'
+        own noise, so the robust variance of ``y_k - y_{k-L}`` is ``L sigma_o^2 + 2 sigma_h^2`` (a variogram): a
+        line fitted over lags 1..``height_lags`` gives both. Cached: measured again when the number of heights
+        has grown by 5 %."""
         c = self.config
         n = len(self.heights)
         if self._scale_noise_at and n < self._scale_noise_at[0] * 1.05 + 1:
@@ -233,15 +230,25 @@ class PoseGraph:
         out = None
         if len(lags) >= 3:
             (a, b), *_ = np.linalg.lstsq(np.c_[np.ones(len(lags)), lags], np.asarray(var), rcond=None)
-            sigma_o = float(np.sqrt(max(b, 0.0)))
-            sigma_h = max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma)
-            if sigma_o >= c.min_scale_drift:
-                used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
-                out = (used, max(sigma_h * used / sigma_o, c.min_height_sigma))
-            log.debug("scale noise from %d heights: odometry %.4f, heights %.4f: %s", n, sigma_o, sigma_h,
-                      f"height factors at {out[1]:.4f} (odometry {out[0]:.4f})" if out else "no height factors")
+            out = (float(np.sqrt(max(b, 0.0))), max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma))
+            log.debug("scale noise from %d heights: odometry %.4f, heights %.4f", n, *out)
         self._scale_noise_at = (n, out)
         return out
+
+    def scale_noise(self) -> tuple[float, float] | None:
+        """``(odometry scale sigma, height sigma)`` for the solve, from :meth:`height_variogram`, or None (not
+        measured yet, or odometry's scale walks less than ``min_scale_drift``: the heights then stay out of the
+        graph). Heights are used only when ``sigma_o`` is at least ``min_scale_drift`` (a monocular front-end
+        that drifts 6 % per submap, the realistic profile: yes; the default profile's, under 1 %: no), weighted
+        by the measured ratio: the odometry sigma is ``odometry_scale_sigma`` or the measured one if larger (up to
+        ``max_odometry_scale_sigma``), the height sigma keeps the measured ratio to it."""
+        c = self.config
+        measured = self.height_variogram()
+        if measured is None or measured[0] < c.min_scale_drift:
+            return None
+        sigma_o, sigma_h = measured
+        used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
+        return used, max(sigma_h * used / sigma_o, c.min_height_sigma)
 
     def _noise(self, edge: Edge, kernel: str, scale_sigma: float | None = None):
         """``scale_sigma``: an odometry edge's scale sigma at least this (measured, :meth:`scale_noise`)."""

@@ -188,14 +188,13 @@ class LoopCloser:
         chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
         tile_uv = m.gallery.tile_centers_uv(keys[ib])
         pm = subsample(m.store.get(match), self.config.registration_max_points)
-        # the height cue holds within one recording (one rig); another recording's camera may ride higher
-        h_q, h_m = (m.height_near(sid), m.height_near(match)) if m.same_segment(sid, match) else (None, None)
+        h_q, h_m, measured = m.height_cue(sid, match)
         cm = m.store.get_colors(match) if colors is not None else None
         cm = subsample(cm, self.config.registration_max_points) if cm is not None else None
         return register_loop(sid, match, points, pm, g.poses[sid], g.poses[match], grid.plane, grid.tile_size,
                              chip_uv, tile_uv, score, margin, self.bounds(match, sid), self.config.registration,
                              colors_query=colors, colors_match=cm, height_query=h_q, height_match=h_m,
-                             images=self._images(sid, match))
+                             images=self._images(sid, match), height_measured=measured)
 
     def _images(self, sid: int, match: int) -> ImageCheck | None:
         """The two submaps' image landmarks for registration (backend/appearance.py), or None (none kept)."""

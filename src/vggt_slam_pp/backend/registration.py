@@ -117,6 +117,8 @@ class RegistrationConfig:
     height_cue: bool = True  # cameras at one height above their ground in both submaps: their ratio is the
     # loop's scale (search.camera_height), searched within and verified against height_cue_tolerance
     height_cue_tolerance: float = 0.1  # |log s| between the loop's scale and the cameras' height ratio
+    height_cue_unmeasured_tolerance: float = 0.2  # the same while the recording's heights are not yet measured
+    # to hold (Map.height_cue); the guesses are then not rescaled to the cue either
     icp_scale_reach: float = 0.05  # how far ICP's scale rounds may move a guess's |log s| (guesses further
     # beyond the limits are not refined)
     height_cue_max_spread: float = 0.1  # robust spread (1.48 MAD / median) of a submap's camera heights for a
@@ -164,7 +166,8 @@ class LoopResult:
     source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
-    scale_cue: float = 0.0  # the scale the two submaps' camera heights gave (0: none); an accepted loop agrees with it
+    scale_cue: float = 0.0  # the scale the two submaps' camera heights gave, once measured to hold (0: none or a loose
+    # bound only, Map.height_cue); an accepted loop agrees with it
     appearance: int = -1  # query landmarks whose image feature the match shows at the aligned place (-1: not
     # measured; backend/appearance.py)
     appearance_comparable: int = -1  # query landmarks the alignment brings near a match landmark seen from a
@@ -444,7 +447,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                   margin: float = np.inf, bounds: LoopBounds | None = None,
                   config: RegistrationConfig | None = None, colors_query: np.ndarray | None = None,
                   colors_match: np.ndarray | None = None, height_query: float | None = None,
-                  height_match: float | None = None, images: ImageCheck | None = None) -> LoopResult:
+                  height_match: float | None = None, images: ImageCheck | None = None,
+                  height_measured: bool = True) -> LoopResult:
     """Register and verify one loop candidate (see the module docstring).
 
     Args:
@@ -465,6 +469,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             disagree"); where the point guesses fail to verify, the alignment the landmarks agree on is one
             more guess (``landmarks``; not rescaled to the height cue: its scale is measured), if ICP could
             still bring it within the bounds and the cue.
+        height_measured: whether the recording's heights have been measured to hold steady
+            (:meth:`~vggt_slam_pp.backend.map.Map.height_cue`). If not, the cue is only a loose bound
+            (``height_cue_unmeasured_tolerance``) and the guesses keep their own scale.
     """
     c = config or RegistrationConfig()
     s_m, R_m, _ = decompose_sim3(T_world_match)
@@ -513,8 +520,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                                  lambda: own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match))
     cue = None
     if c.height_cue and height_query is not None and height_match is not None:
-        cue = (height_match / height_query, c.height_cue_tolerance)
-        for k in list(guesses):  # the estimate's guesses at the cameras' scale, about the query's centroid
+        cue = (height_match / height_query, c.height_cue_tolerance if height_measured else
+               c.height_cue_unmeasured_tolerance)
+        # the estimate's guesses at the cameras' scale, about the query's centroid (heights measured to hold)
+        for k in list(guesses) if height_measured else ():
             guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
 
     def off_cue(T: np.ndarray, slack: float = 0.0) -> bool:
@@ -659,7 +668,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         constraint = float(ev[0] / max(ev[1], 1e-12))
         kw = dict(overlap=overlap, structure_overlap=s_overlap, agreement=agree, agreement_cells=cells,
                   residual=residual * float(s_m), planar_inliers=n_planar, guess=best.guess, constraint_ratio=constraint,
-                  scale_cue=cue[0] if cue is not None else 0.0)
+                  scale_cue=cue[0] if cue is not None and height_measured else 0.0)
         C = T_world_match @ Z @ sim3_inverse(T_world_query)  # the correction, world frame
         if overlap < c.min_overlap:
             return reject(f"overlap {overlap:.2f} < {c.min_overlap}", **kw)

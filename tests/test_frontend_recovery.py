@@ -82,6 +82,17 @@ def test_a_submap_that_always_fails_is_flagged_not_identity(tmp_path, loop_seque
     assert report["degraded_edges"] >= 1 and all(e["cause"] for e in report["edges"] if e["degraded"])
 
 
+def test_a_bridge_that_fails_with_the_last_keyframes_is_tried_with_all_of_them(tmp_path, loop_sequence):
+    # submap 2 (call 3) and its bridge with the previous submap's last 4 keyframes (call 4) reconstruct nothing;
+    # with all 8 (call 5: a fast start or turn whose last keyframes are the poorly tracked ones) it links
+    backbone = _Faulty(loop_sequence, lambda call, idx: [call in (3, 4)] * len(idx))
+    report = _run(loop_sequence, tmp_path / "all", backbone, submap_size=8)
+    assert report["degraded_edges"] == 0 and report["recovered_edges"] == 1
+    edge = report["edges"][1]
+    assert edge["cause"].startswith("bridged: reconstructed again with 8 more keyframes"), edge["cause"]
+    assert _exact(report) and report["invalid_frames"] == []
+
+
 @pytest.mark.parametrize(("overlap", "recovered"), [(1, 1), (2, 0)])
 def test_an_unregistered_overlap_frame_is_bridged_or_covered_by_the_other_shared_frame(
         tmp_path, loop_sequence, overlap, recovered):

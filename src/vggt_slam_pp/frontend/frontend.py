@@ -14,7 +14,7 @@ Recovery (never a silent identity edge):
 2. *split*: keyframes left unregistered at the end of a submap are handed to the next submap, so the
    submap ends on a registered frame;
 3. *bridge*: when the shared frames do not link the new submap to the previous one, the new submap is
-   reconstructed again with more of the previous submap's registered keyframes in front;
+   reconstructed again with more of the previous submap's registered keyframes in front (a few, then up to 16);
 4. last resort, the edge is *extrapolated* (:func:`~vggt_slam_pp.frontend.odometry.extrapolated_edge`)
    and flagged ``degraded`` with its cause; the back-end gives it a large uncertainty.
 
@@ -57,6 +57,8 @@ class FrontendConfig:
     submap_size: int = 32  # w: new keyframes per submap
     overlap: int = 0  # keyframes shared with the previous submap; 0 = auto (1 dense, sparse_overlap(w) sparse)
     bridge_frames: int = 0  # extra keyframes of the previous submap for a bridge; 0 = auto (max(4, min(16, 2 * overlap)))
+    bridge_max_frames: int = 16  # a bridge that fails is tried once more with up to this many (all of a short
+    # previous submap's registered keyframes: a fast start or turn leaves its last keyframes the poorly tracked ones)
     filter: FilterConfig = field(default_factory=FilterConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)  # image features on the points (loops)
@@ -250,23 +252,31 @@ class Frontend:
     def _bridge(self, sid: int, prev: Submap, pred: SubmapPrediction, frames: list[Frame], problem: str
                 ) -> tuple[SubmapPrediction, list[Frame], str]:
         """Reconstruct the submap again with up to ``bridge_frames`` more registered keyframes of the
-        previous submap in front; returns the better linked result and a note for the edge's cause."""
+        previous submap in front, and if that does not link it either, with up to ``bridge_max_frames`` (all of a
+        short submap's: after a fast start or turn its last keyframes may be the poorly tracked ones); returns
+        the best linked result and a note for the edge's cause."""
         have = {f.index for f in frames}
         valid = {int(i) for i, v in zip(prev.frame_indices, prev.prediction.valid, strict=True) if v}
-        extra = [f for f in self._last_frames if f.index in valid and f.index not in have][-self.bridge_frames:]
-        if not extra:
+        usable = [f for f in self._last_frames if f.index in valid and f.index not in have]
+        if not usable:
             return pred, frames, ""
-        log.warning("submap %d is not soundly linked to submap %d (%s); reconstructing it again with %d more "
-                    "keyframes of submap %d", sid, sid - 1, problem, len(extra), sid - 1)
-        bridged = extra + frames
-        candidate = self._filtered(self._predict(sid, bridged))
-        if not link_problem(prev.prediction, candidate, self.config.odometry):
-            return candidate, bridged, (f"bridged: reconstructed again with {len(extra)} more keyframes of "
-                                        f"submap {sid - 1} ({problem})")
-        before = overlap_disagreement(prev.prediction, pred)
-        if overlap_disagreement(prev.prediction, candidate) < before:  # NaN compares False: keep the first
-            pred, frames = candidate, bridged
-        return pred, frames, f"bridge with {len(extra)} more keyframes of submap {sid - 1} failed"
+        best, best_frames, best_gap = pred, frames, overlap_disagreement(prev.prediction, pred)
+        sizes = sorted({min(self.bridge_frames, len(usable)),
+                        min(max(self.bridge_frames, self.config.bridge_max_frames), len(usable))})
+        for n in sizes:
+            extra = usable[-n:]
+            log.warning("submap %d is not soundly linked to submap %d (%s); reconstructing it again with %d "
+                        "more keyframes of submap %d", sid, sid - 1, problem, len(extra), sid - 1)
+            bridged = extra + frames
+            candidate = self._filtered(self._predict(sid, bridged))
+            if not link_problem(prev.prediction, candidate, self.config.odometry):
+                return candidate, bridged, (f"bridged: reconstructed again with {len(extra)} more keyframes of "
+                                            f"submap {sid - 1} ({problem})")
+            gap = overlap_disagreement(prev.prediction, candidate)
+            if gap < best_gap:  # NaN compares False: keep the earlier
+                best, best_frames, best_gap = candidate, bridged, gap
+        return best, best_frames, (f"bridge with {' and '.join(str(n) for n in sizes)} more keyframes of submap "
+                                   f"{sid - 1} failed")
 
 
 def point_colors(pred: SubmapPrediction, frames: list[Frame]) -> np.ndarray:

@@ -1642,6 +1642,13 @@ def test_the_height_cue_is_loose_until_the_heights_are_measured_to_hold(tmp_path
         assert np.isclose(h_q, m.height(i)) and np.isclose(h_m, m.height(0))
         assert measured == (i == enough - 1)  # a loose bound until then (register_loop's height_measured)
     assert m.graph.height_variogram() is not None
+    for i in range(enough, enough + 4):  # another recording beside the map: its own heights are not measured yet
+        step = make_sim3(1.0, np.eye(3), np.array([5.0, 0.0, 0.0]))
+        m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "points") if i > enough else None,
+                     np.zeros((0, 3)))
+        m.set_height(i, 1.6)
+    assert m.height_cue(enough + 3, enough)[2] is False and m.height_cue(enough - 1, 0)[2] is True
+    assert m.height_cue(enough + 3, 0) == (None, None, False)  # and no cue across recordings
 
 
 def test_heights_give_no_scale_when_the_cameras_climb_with_them(tmp_path, rng):

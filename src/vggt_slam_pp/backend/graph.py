@@ -137,7 +137,8 @@ class PoseGraph:
         self.anchors: set[int] = set()
         self.heights: dict[int, tuple[float, int]] = {}  # node -> (its cameras' height in its units, group)
         self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
-        self._scale_noise_at: tuple[int, tuple[float, float] | None] | None = None  # (heights, height_variogram())
+        # group (None: all) -> (its heights when measured, height_variogram())
+        self._variogram_at: dict[int | None, tuple[int, tuple[float, float] | None]] = {}
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -181,7 +182,7 @@ class PoseGraph:
         kept = {i: h for i, h in self.heights.items() if h[1] != group}
         dropped, self.heights = len(self.heights) - len(kept), kept
         self.height_refs.pop(int(group), None)
-        self._scale_noise_at = None
+        self._variogram_at = {}
         return dropped
 
     def add_edge(self, edge: Edge) -> None:
@@ -196,10 +197,11 @@ class PoseGraph:
         self.edges.append(edge)
 
     # -- solving --------------------------------------------------------------------------------
-    def height_variogram(self) -> tuple[float, float] | None:
-        """``(sigma_o, sigma_h)`` measured from the heights: the odometry's scale random walk per submap and the
-        heights' own noise (log-scale), or None while too few heights lie on chains of odometry to measure them
-        (fewer than ``height_min_edges`` differences at 3 lags or more).
+    def height_variogram(self, group: int | None = None) -> tuple[float, float] | None:
+        """``(sigma_o, sigma_h)`` measured from the heights (of recording ``group``; None: every recording's):
+        the odometry's scale random walk per submap and the heights' own noise (log-scale), or None while too few
+        heights lie on chains of odometry to measure them (fewer than ``height_min_edges`` differences at 3 lags
+        or more).
 
         Along a chain of non-degraded odometry edges, at the submaps with heights, ``y_k = log(S_k h_k)``
         (``S_k`` the chained odometry scale) is ``log H`` plus the odometry's scale random walk plus the heights'
@@ -207,9 +209,11 @@ class PoseGraph:
         line fitted over lags 1..``height_lags`` gives both. Cached: measured again when the number of heights
         has grown by 5 %."""
         c = self.config
-        n = len(self.heights)
-        if self._scale_noise_at and n < self._scale_noise_at[0] * 1.05 + 1:
-            return self._scale_noise_at[1]
+        heights = {k: h for k, h in self.heights.items() if group is None or h[1] == group}
+        n = len(heights)
+        cached = self._variogram_at.get(group)
+        if cached and n < cached[0] * 1.05 + 1:
+            return cached[1]
         odo = {e.j: e for e in self.edges if e.kind == "odometry" and e.j == e.i + 1}
         cum: dict[int, float] = {}  # chained log odometry scale along runs of non-degraded odometry edges
         chain: dict[int, int] = {}
@@ -219,11 +223,11 @@ class PoseGraph:
                 cum[k], chain[k] = cum[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0])), chain[k - 1]
             else:
                 cum[k], chain[k] = 0.0, k
-        y = {k: cum[k] + float(np.log(h)) for k, (h, _) in self.heights.items()}
+        y = {k: cum[k] + float(np.log(h)) for k, (h, _) in heights.items()}
         lags, var = [], []
         for L in range(1, c.height_lags + 1):
             d = np.array([y[k] - y[k - L] for k in y if (k - L) in y and chain[k - L] == chain[k]
-                          and self.heights[k - L][1] == self.heights[k][1]])
+                          and heights[k - L][1] == heights[k][1]])
             if len(d) >= c.height_min_edges:
                 lags.append(L)
                 var.append((1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2)
@@ -232,7 +236,7 @@ class PoseGraph:
             (a, b), *_ = np.linalg.lstsq(np.c_[np.ones(len(lags)), lags], np.asarray(var), rcond=None)
             out = (float(np.sqrt(max(b, 0.0))), max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma))
             log.debug("scale noise from %d heights: odometry %.4f, heights %.4f", n, *out)
-        self._scale_noise_at = (n, out)
+        self._variogram_at[group] = (n, out)
         return out
 
     def scale_noise(self) -> tuple[float, float] | None:

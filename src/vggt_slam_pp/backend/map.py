@@ -138,15 +138,16 @@ class Map:
 
         The cue holds within one recording (one rig; another recording's camera may ride higher). It is a
         full constraint (the guesses rescaled to it, 10 % tolerance) only once the recording's heights have
-        been measured to hold steady (``measured``, :meth:`PoseGraph.height_variogram`: enough heights along
-        odometry to tell their own noise from odometry's scale drift, about 11 on one chain). Before that the
+        been measured to hold steady (``measured``, :meth:`PoseGraph.height_variogram` of its own heights: enough
+        along odometry to tell their own noise from odometry's scale drift, about 11 on one chain). Before that the
         heights are a hypothesis and only a loose bound (``RegistrationConfig.height_cue_unmeasured_tolerance``):
         a hand-held camera that moves up and down a few per cent between submaps passes the climbing test
         (:meth:`set_height`) while odometry's scale noise hides its climb, and rescaling its loops to ratios
         of heights that are not its scale turned them by 4-11 deg (docs/experiments.md, session 43)."""
         if not self.same_segment(query, match):
             return None, None, False
-        return self.height_near(query), self.height_near(match), self.graph.height_variogram() is not None
+        measured = self.graph.height_variogram(self.segment[query]) is not None
+        return self.height_near(query), self.height_near(match), measured
 
     def set_height(self, sid: int, height: float, altitude: float | None = None) -> bool:
         """Submap ``sid``'s cameras stand ``height`` (its units) above its ground: a height factor in the

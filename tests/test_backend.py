@@ -1622,6 +1622,50 @@ def test_a_first_submap_without_a_ground_plane_leaves_the_dem_plane_to_the_next(
     assert set(backend.map.graph.poses) == {0, 1}
 
 
+def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
+    """Without metric scale the DEM tile is a fraction of the cameras' depth to their points. A take-off sees the
+    ground close up (EuRoC: its first submap 30x closer than the flight, the back-end 100x slower per submap):
+    the plane and the tile are fit to the first BackendConfig.grid_submaps submaps together, their queries held
+    until then; a run shorter than that fits them to what there is at the end."""
+    import dataclasses
+
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig, SubmapMessage
+    from vggt_slam_pp.frontend.types import OdometryEdge
+
+    def config():
+        c = BackendConfig()
+        dem = dataclasses.replace(c.covisibility.dem, tile_size="auto")
+        return dataclasses.replace(c, covisibility=dataclasses.replace(c.covisibility, dem=dem))
+
+    def scene(height):  # ground and boxes seen by cameras ``height`` above it
+        ground = np.c_[rng.uniform(-6, 6, (4000, 2)) * height, rng.uniform(0, 0.01, 4000) * height]
+        boxes = np.c_[rng.uniform(-1, 1, (1500, 2)) * height, rng.uniform(0, 0.5, 1500) * height]
+        return np.r_[ground, boxes], np.array([[0.0, 0.0, height], [0.5 * height, 0.0, height]])
+
+    def step(i):
+        return OdometryEdge(i - 1, i, make_sim3(1.0, np.eye(3), np.array([10.0, 0.0, 0.0])), 0.01, 1.0, 100, "points")
+
+    backend = Backend(config(), SubmapStore(tmp_path / "a"))
+    for i, height in enumerate((0.2, 5.0, 5.0, 5.0)):
+        points, cams = scene(height)
+        backend.map.store.put(i, points)
+        backend.add_submap(SubmapMessage(i, cams, step(i) if i else None))
+        if i < 2:
+            assert backend.map.gallery.grid is None and not backend.map.in_gallery(i)
+    grid = backend.map.gallery.grid
+    assert grid is not None and abs(grid.plane.normal[2]) > 0.99
+    assert grid.tile_size > 0.5  # from the flight's depth (about 1.4); from the take-off's alone about 0.05
+    assert all(backend.map.in_gallery(i) for i in range(4))
+
+    short = Backend(config(), SubmapStore(tmp_path / "b"))
+    points, cams = scene(5.0)
+    short.map.store.put(0, points)
+    short.add_submap(SubmapMessage(0, cams, None))
+    assert short.map.gallery.grid is None
+    result = short.finish()
+    assert result.tile_size is not None and result.tile_size > 0.5 and short.map.in_gallery(0)
+
+
 def test_the_height_cue_is_loose_until_the_heights_are_measured_to_hold(tmp_path, rng):
     """A loop's scale cue from two submaps' heights is a full constraint only once the recording's heights have
     been measured against odometry (their own noise told from odometry's scale drift, PoseGraph.height_variogram):

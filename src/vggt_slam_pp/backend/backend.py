@@ -124,6 +124,8 @@ class Backend:
         self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
         self._deferred: deque[tuple[int, np.ndarray, int]] = deque()  # (submap, camera centres, its entry in
         # ``seconds``: a deferred query's time counts for its submap) still to query
+        self._held: list[tuple[int, np.ndarray | None]] = []  # (submap, camera centres): submaps waiting for the DEM
+        # grid (BackendConfig.grid_submaps), in order
         self._version = 0
 
     def seed_map(self, saved, localize_only: bool = False) -> None:
@@ -155,10 +157,12 @@ class Backend:
             self.skipped.append(sid)
             self._deferred.append((sid, msg.camera_centers, len(self.seconds)))
             self.timings["covisibility_s"] += time.perf_counter() - t0
-        elif len(points) >= 3 and (not first or self._fit_grid(sid, msg.camera_centers)):
+        elif len(points) >= 3 and first:
+            self._held.append((sid, msg.camera_centers))
+            if len(self._held) >= self._grid_submaps():
+                self._fit_grid()
+        elif len(points) >= 3:
             accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
-            if first:  # the first submap with a layer: the DEM plane exists only now
-                self._measure_height(sid, points, msg.camera_centers)
         if accepted:
             self._solve_for(sid, accepted)
         elif m.stale:  # layers a solve moved beyond the refresh budget: the next ones now
@@ -174,21 +178,40 @@ class Backend:
             self.memory_trace.append((len(self.seconds), snap.rss_mb))
         return snap
 
-    def _fit_grid(self, sid: int, camera_centers: np.ndarray | None) -> bool:
-        """Fit the DEM plane and grid to submap ``sid`` (the first one with points); False, with a warning,
-        where its points hold no ground plane (a few points: a camera without parallax, a start the
-        backbone could not reconstruct): it joins the graph without a layer, and the next submap is tried."""
+    def _grid_submaps(self) -> int:
+        """How many submaps the DEM plane and grid are fit to: ``BackendConfig.grid_submaps`` for an "auto" tile
+        (a depth that one submap may not represent), else the first one's plane alone."""
+        return max(1, self.config.grid_submaps) if self.map.gallery.config.dem.tile_size == "auto" else 1
+
+    def _fit_grid(self) -> None:
+        """Fit the DEM plane and grid to the held submaps together (:attr:`_held`, their points and cameras at
+        their current poses), then run their queries in order (each one's loops solved before the next) and
+        measure their heights. Where their points hold no ground plane (a few points: a camera without
+        parallax, a start the backbone could not reconstruct) the oldest joins the graph without a layer, with
+        a warning, and the rest wait for the next submap."""
         m, t0 = self.map, time.perf_counter()
+        held = self._held
+        points = [m.layer_points(sid) for sid, _ in held]
+        cams = [transform_points(m.graph.poses[sid], c) for sid, c in held if c is not None]
         try:
-            m.gallery.ensure_grid(m.layer_points(sid), transform_points(m.graph.poses[sid], camera_centers)
-                                  if camera_centers is not None else None, None)
+            m.gallery.ensure_grid(np.concatenate(points), np.concatenate(cams) if cams else None, None)
         except DemError as e:
-            log.warning("submap %d: no DEM plane from its points (%s); it joins the map without a DEM layer, "
-                        "and the next submap is tried", sid, e)
-            return False
+            log.warning("submap %s: no DEM plane from %s points (%s); %s without a DEM layer, and the next "
+                        "submap is tried", ", ".join(str(s) for s, _ in held), "its" if len(held) == 1 else "their",
+                        e, "it joins the map" if len(held) == 1 else f"submap {held[0][0]} joins the map")
+            held.pop(0)
+            return
         finally:
             self.timings["covisibility_s"] += time.perf_counter() - t0
-        return True
+        log.info("DEM plane and tile %.3g fit to submap%s %s", m.gallery.grid.tile_size, "s" if len(held) > 1 else "",
+                 ", ".join(str(s) for s, _ in held))
+        self._held = []
+        for sid, centres in held:
+            pts = m.store.get(sid)
+            accepted = self._query(sid, centres, pts, index=m.index_new)
+            self._measure_height(sid, pts, centres)  # the DEM plane exists only now
+            if accepted:
+                self._solve_for(sid, accepted)
 
     def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None) -> None:
         """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_height`,
@@ -306,6 +329,8 @@ class Backend:
     def finish(self) -> BackendResult:
         """The deferred queries, then the final global optimisation (when there is any loop), pruning of
         the loops it switched off, and the result."""
+        while self._held:  # a run shorter than BackendConfig.grid_submaps: the grid from what there is
+            self._fit_grid()
         while self._deferred:
             self.query_deferred()
         graph = self.map.graph

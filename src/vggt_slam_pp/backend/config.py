@@ -46,6 +46,9 @@ class BackendConfig:
     relocate_per_submap: float = 4.0  # ... and at most this many per new submap on average (a revisit's loops
     # move hundreds of layers again and again: its cost per submap stays flat); <= 0: no such limit
     cache_submaps: int = 8
+    grid_submaps: int = 3  # an "auto" DEM tile (a backbone without metric scale): the DEM plane and tile are fit to
+    # the first this many submaps with points together, their queries held until then (a take-off or a start at a
+    # wall sees the ground close up: EuRoC's first submap 30x closer than the flight, a tile 30x too fine)
     altitude_min_pairs: int = 5  # a recording's heights give no scale once, over at least this many pairs of
     altitude_explained: float = 0.5  # nearby submaps with heights, the cameras' climb above the ground plane (in
     # odometry) explains more than this share of the heights' changes: a flying or hand-held camera

@@ -37,7 +37,7 @@ from vggt_slam_pp.backend.config import BackendConfig, FaultConfig
 from vggt_slam_pp.backend.graph import Edge, PoseGraph
 from vggt_slam_pp.backend.loops import PENDING, LoopCloser
 from vggt_slam_pp.backend.map import Map, subsample
-from vggt_slam_pp.backend.places import CovisibilityStage, Gallery
+from vggt_slam_pp.backend.places import CovisibilityStage, Gallery, camera_depth
 from vggt_slam_pp.backend.registration import LoopResult
 from vggt_slam_pp.backend.search import camera_height
 from vggt_slam_pp.backend.store import SubmapStore
@@ -192,9 +192,12 @@ class Backend:
         m, t0 = self.map, time.perf_counter()
         held = self._held
         points = [m.layer_points(sid) for sid, _ in held]
-        cams = [transform_points(m.graph.poses[sid], c) for sid, c in held if c is not None]
+        cams = [transform_points(m.graph.poses[sid], c) if c is not None else np.zeros((0, 3)) for sid, c in held]
+        # each submap's points against its own cameras (another's may stand nearer: a walk round a courtyard)
+        depths = [d for d in map(camera_depth, points, cams) if d is not None]
         try:
-            m.gallery.ensure_grid(np.concatenate(points), np.concatenate(cams) if cams else None, None)
+            m.gallery.ensure_grid(np.concatenate(points), np.concatenate(cams),
+                                  float(np.median(depths)) if depths else None)
         except DemError as e:
             log.warning("submap %s: no DEM plane from %s points (%s); %s without a DEM layer, and the next "
                         "submap is tried", ", ".join(str(s) for s, _ in held), "its" if len(held) == 1 else "their",

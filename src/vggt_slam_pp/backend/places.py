@@ -89,6 +89,15 @@ class StageResult:
     described: Described | None  # the query's layer, for :meth:`Gallery.add` (None once inserted)
 
 
+def camera_depth(points: np.ndarray, camera_centers: np.ndarray) -> float | None:
+    """The median distance of points [N,3] to the nearest of their cameras [S,3] (None without either)."""
+    if not len(points) or not len(camera_centers):
+        return None
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(camera_centers).query(points)[0]))
+
+
 class Gallery:
     """The place layer of the map: one described DEM layer per submap (see the module docstring)."""
 
@@ -112,11 +121,8 @@ class Gallery:
         """Fit the ground plane and grid to the first submap (world frame), unless a grid is set."""
         if self.grid is None:
             plane = fit_ground_plane(points_world, camera_centers)
-            if median_depth is None and self.config.dem.tile_size == "auto" and camera_centers is not None \
-                    and len(camera_centers) and len(points_world):
-                from scipy.spatial import cKDTree
-
-                median_depth = float(np.median(cKDTree(camera_centers).query(points_world)[0]))
+            if median_depth is None and self.config.dem.tile_size == "auto" and camera_centers is not None:
+                median_depth = camera_depth(points_world, camera_centers)
             self.grid = DemGrid.create(plane, self.config.dem, median_depth)
             cells_per_tile = self.grid.tile_px / self.encoder.patch_px
             if cells_per_tile != int(cells_per_tile):

@@ -1657,6 +1657,21 @@ def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
     assert grid.tile_size > 0.5  # from the flight's depth (about 1.4); from the take-off's alone about 0.05
     assert all(backend.map.in_gallery(i) for i in range(4))
 
+    # each submap's points against its own cameras: across a courtyard, another submap's cameras stand nearer
+    across = Backend(config(), SubmapStore(tmp_path / "c"))
+    for i in range(3):
+        side = 1.0 if i % 2 else -1.0
+        ground = np.c_[rng.uniform(-10, 10, (3000, 2)), np.zeros(3000)]
+        wall = np.c_[np.full(1500, 10.0 * side), rng.uniform(-10, 10, 1500), rng.uniform(0, 3, 1500)]
+        cams = np.array([[-9.0 * side, 0.0, 1.5], [-9.0 * side, 2.0, 1.5]])  # looking across at the wall
+        pts = np.r_[ground[ground[:, 0] * side > 0], wall]
+        across.map.store.put(i, pts)
+        across.add_submap(SubmapMessage(i, cams, step(i) if i else None))
+    own = np.median([np.median(np.linalg.norm(p[:, None] - c[None], axis=2).min(axis=1)) for p, c in (
+        (across.map.store.get(i), np.array([[-9.0 * s, 0.0, 1.5], [-9.0 * s, 2.0, 1.5]])) for i, s in
+        ((0, -1.0), (1, 1.0), (2, -1.0)))])
+    assert np.isclose(across.map.gallery.grid.tile_size, 0.25 * own, rtol=0.1)
+
     short = Backend(config(), SubmapStore(tmp_path / "b"))
     points, cams = scene(5.0)
     short.map.store.put(0, points)

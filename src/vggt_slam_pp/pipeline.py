@@ -350,14 +350,14 @@ def _open_prior_map(folder: str | Path, out: Path, config: RunConfig):
 
 def _scale_aware(config: BackendConfig, backbone: Backbone) -> BackendConfig:
     """A backbone without metric scale (VGGT normalises each submap, COLMAP's scale is arbitrary) gets the
-    DEM tile size "auto" (a fraction of the first submap's median depth) instead of the metric 2 m: with
+    DEM tile size "auto" (a fraction of the first submaps' median camera depth) instead of the metric 2 m: with
     2 "units" of a normalised VGGT scene (about 20 m) the oracle VGGT closed 6-9 loops of the block loop
     where the simulated backbone closes 18-21 (docs/backend.md)."""
     dem = config.covisibility.dem
     if backbone.metric or isinstance(dem.tile_size, str) or dem.tile_size != DemConfig().tile_size:
         return config
-    log.info("backbone %s has no metric scale: DEM tile size 'auto' (%.2f x the first submap's median depth)",
-             backbone.name, dem.auto_tile_fraction)
+    log.info("backbone %s has no metric scale: DEM tile size 'auto' (%.2f x the median camera depth of the first "
+             "%d submaps)", backbone.name, dem.auto_tile_fraction, config.grid_submaps)
     covis = dataclasses.replace(config.covisibility, dem=dataclasses.replace(dem, tile_size="auto"))
     return dataclasses.replace(config, covisibility=covis)
 

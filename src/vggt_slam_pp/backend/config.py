@@ -48,7 +48,8 @@ class BackendConfig:
     cache_submaps: int = 8
     grid_submaps: int = 3  # an "auto" DEM tile (a backbone without metric scale): the DEM plane and tile are fit to
     # the first this many submaps with points together, their queries held until then (a take-off or a start at a
-    # wall sees the ground close up: EuRoC's first submap 30x closer than the flight, a tile 30x too fine)
+    # wall sees the ground close up: EuRoC's first submap 30x closer than the flight; the tile is the median of
+    # their own camera depths x DemConfig.auto_tile_fraction)
     altitude_min_pairs: int = 5  # a recording's heights give no scale once, over at least this many pairs of
     altitude_explained: float = 0.5  # nearby submaps with heights, the cameras' climb above the ground plane (in
     # odometry) explains more than this share of the heights' changes: a flying or hand-held camera

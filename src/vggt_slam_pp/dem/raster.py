@@ -28,7 +28,8 @@ REDUCERS = ("softmax", "mean", "max")
 
 @dataclass(frozen=True)
 class DemConfig:
-    tile_size: float | str = 2.0  # world units, or "auto" (fraction of the first submap's median depth)
+    tile_size: float | str = 2.0  # world units, or "auto" (a fraction of the median camera depth: see
+    # BackendConfig.grid_submaps)
     auto_tile_fraction: float = 0.25
     tile_px: int = 28
     reducer: str = "softmax"
@@ -50,7 +51,7 @@ class DemGrid:
     def create(cls, plane: GroundPlane, config: DemConfig, median_depth: float | None = None) -> DemGrid:
         if config.tile_size == "auto":
             if median_depth is None or not np.isfinite(median_depth) or median_depth <= 0:
-                raise DemError("tile_size 'auto' needs the first submap's median depth")
+                raise DemError("tile_size 'auto' needs the submaps' median camera depth")
             tile = config.auto_tile_fraction * median_depth
         else:
             tile = float(config.tile_size)

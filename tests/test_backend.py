@@ -831,7 +831,7 @@ def test_backbones_without_metric_scale_get_an_auto_dem_tile(rng):
     assert _scale_aware(BackendConfig(), SimulatedBackbone({})).covisibility.dem.tile_size == 2.0
     auto = _scale_aware(BackendConfig(), _Unitless({}))
     assert auto.covisibility.dem.tile_size == "auto"
-    # the grid's tile is then a quarter of the first submap's median camera-to-point distance, whatever the units
+    # the grid's tile is then a fraction of the median camera-to-point distance, whatever the units
     for units in (1.0, 0.05):
         stage = CovisibilityStage.create(make_encoder("hog"), auto.covisibility)
         ground = np.c_[rng.uniform(-20, 20, (4000, 2)), np.zeros(4000)] * units
@@ -839,7 +839,7 @@ def test_backbones_without_metric_scale_get_an_auto_dem_tile(rng):
         stage.gallery.ensure_grid(ground, cams, None)
         from scipy.spatial import cKDTree
 
-        expected = 0.25 * np.median(cKDTree(cams).query(ground)[0])
+        expected = auto.covisibility.dem.auto_tile_fraction * np.median(cKDTree(cams).query(ground)[0])
         assert np.isclose(stage.grid.tile_size, expected)
     assert CovisibilityConfig().dem.tile_size == 2.0
 
@@ -1654,7 +1654,8 @@ def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
             assert backend.map.gallery.grid is None and not backend.map.in_gallery(i)
     grid = backend.map.gallery.grid
     assert grid is not None and abs(grid.plane.normal[2]) > 0.99
-    assert grid.tile_size > 0.5  # from the flight's depth (about 1.4); from the take-off's alone about 0.05
+    fraction = backend.config.covisibility.dem.auto_tile_fraction
+    assert grid.tile_size > 2.0 * fraction  # from the flight's depth (about 5.6 x it); from the take-off's about 0.2 x
     assert all(backend.map.in_gallery(i) for i in range(4))
 
     # each submap's points against its own cameras: across a courtyard, another submap's cameras stand nearer
@@ -1670,7 +1671,7 @@ def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
     own = np.median([np.median(np.linalg.norm(p[:, None] - c[None], axis=2).min(axis=1)) for p, c in (
         (across.map.store.get(i), np.array([[-9.0 * s, 0.0, 1.5], [-9.0 * s, 2.0, 1.5]])) for i, s in
         ((0, -1.0), (1, 1.0), (2, -1.0)))])
-    assert np.isclose(across.map.gallery.grid.tile_size, 0.25 * own, rtol=0.1)
+    assert np.isclose(across.map.gallery.grid.tile_size, fraction * own, rtol=0.1)
 
     short = Backend(config(), SubmapStore(tmp_path / "b"))
     points, cams = scene(5.0)
@@ -1678,7 +1679,7 @@ def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
     short.add_submap(SubmapMessage(0, cams, None))
     assert short.map.gallery.grid is None
     result = short.finish()
-    assert result.tile_size is not None and result.tile_size > 0.5 and short.map.in_gallery(0)
+    assert result.tile_size is not None and result.tile_size > 2.0 * fraction and short.map.in_gallery(0)
 
 
 def test_the_height_cue_is_loose_until_the_heights_are_measured_to_hold(tmp_path, rng):

@@ -128,7 +128,8 @@ def test_empty_pixels_and_empty_layer(rng):
         rasterize(pts, g, reducer="median")
     with pytest.raises(DemError, match="auto"):
         DemGrid.create(FLAT, DemConfig(tile_size="auto"))
-    assert np.isclose(DemGrid.create(FLAT, DemConfig(tile_size="auto"), median_depth=8.0).tile_size, 2.0)
+    auto = DemConfig(tile_size="auto")
+    assert np.isclose(DemGrid.create(FLAT, auto, median_depth=8.0).tile_size, 8.0 * auto.auto_tile_fraction)
 
 
 def test_images_and_export(tmp_path, rng):

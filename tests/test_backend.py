@@ -1658,6 +1658,16 @@ def test_an_auto_dem_tile_is_fit_to_the_first_submaps_together(tmp_path, rng):
     assert grid.tile_size > 2.0 * fraction  # from the flight's depth (about 5.6 x it); from the take-off's about 0.2 x
     assert all(backend.map.in_gallery(i) for i in range(4))
 
+    # a start of a few points (a camera without parallax) neither holds a plane nor votes on the tile
+    few = Backend(config(), SubmapStore(tmp_path / "d"))
+    for i, height in enumerate((0.2, 0.2, 5.0, 5.0, 5.0)):
+        points, cams = scene(height)
+        few.map.store.put(i, points[:12] if i < 2 else points)
+        few.add_submap(SubmapMessage(i, cams, step(i) if i else None))
+    assert not few.map.in_gallery(0) and not few.map.in_gallery(1) and few.map.in_gallery(2)
+    assert np.isclose(few.map.gallery.grid.tile_size, grid.tile_size, rtol=0.1)
+    assert set(few.map.graph.heights) >= {2, 3, 4}  # the held submaps' heights, measured once the plane exists
+
     # each submap's points against its own cameras: across a courtyard, another submap's cameras stand nearer
     across = Backend(config(), SubmapStore(tmp_path / "c"))
     for i in range(3):

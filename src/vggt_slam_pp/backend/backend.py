@@ -41,6 +41,7 @@ from vggt_slam_pp.backend.places import CovisibilityStage, Gallery, camera_depth
 from vggt_slam_pp.backend.registration import LoopResult
 from vggt_slam_pp.backend.search import camera_height
 from vggt_slam_pp.backend.store import SubmapStore
+from vggt_slam_pp.dem import PlaneConfig
 from vggt_slam_pp.errors import DemError
 from vggt_slam_pp.frontend.types import OdometryEdge
 from vggt_slam_pp.geometry.lie import decompose_sim3, transform_points
@@ -158,9 +159,13 @@ class Backend:
             self._deferred.append((sid, msg.camera_centers, len(self.seconds)))
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3 and first:
-            self._held.append((sid, msg.camera_centers))
-            if len(self._held) >= self._grid_submaps():
-                self._fit_grid()
+            if len(points) < PlaneConfig().min_points:  # nor may it vote on the tile (a start without parallax)
+                log.warning("submap %d: no DEM plane from its %d points (a plane needs %d); it joins the map without "
+                            "a DEM layer, and the next submap is tried", sid, len(points), PlaneConfig().min_points)
+            else:
+                self._held.append((sid, msg.camera_centers))
+                if len(self._held) >= self._grid_submaps():
+                    self._fit_grid()
         elif len(points) >= 3:
             accepted = self._query(sid, msg.camera_centers, points, index=m.index_new)
         if accepted:
@@ -211,8 +216,8 @@ class Backend:
         self._held = []
         for sid, centres in held:
             pts = m.store.get(sid)
-            accepted = self._query(sid, centres, pts, index=m.index_new)
             self._measure_height(sid, pts, centres)  # the DEM plane exists only now
+            accepted = self._query(sid, centres, pts, index=m.index_new)
             if accepted:
                 self._solve_for(sid, accepted)
 

@@ -118,7 +118,8 @@ class Gallery:
 
     def ensure_grid(self, points_world: np.ndarray, camera_centers: np.ndarray | None,
                     median_depth: float | None) -> None:
-        """Fit the ground plane and grid to the first submap (world frame), unless a grid is set."""
+        """Fit the ground plane and grid to the first submaps' points [N,3] and cameras [S,3] (world frame), unless
+        a grid is set; ``median_depth``: the "auto" tile's depth (None: the points' to the nearest camera)."""
         if self.grid is None:
             plane = fit_ground_plane(points_world, camera_centers)
             if median_depth is None and self.config.dem.tile_size == "auto" and camera_centers is not None:

@@ -159,9 +159,10 @@ class Backend:
             self._deferred.append((sid, msg.camera_centers, len(self.seconds)))
             self.timings["covisibility_s"] += time.perf_counter() - t0
         elif len(points) >= 3 and first:
-            if len(points) < PlaneConfig().min_points:  # nor may it vote on the tile (a start without parallax)
+            need = PlaneConfig().min_points
+            if len(points) < need:  # nor may it vote on the tile (a start without parallax)
                 log.warning("submap %d: no DEM plane from its %d points (a plane needs %d); it joins the map without "
-                            "a DEM layer, and the next submap is tried", sid, len(points), PlaneConfig().min_points)
+                            "a DEM layer, and the next submap is tried", sid, len(points), need)
             else:
                 self._held.append((sid, msg.camera_centers))
                 if len(self._held) >= self._grid_submaps():
@@ -200,19 +201,18 @@ class Backend:
         cams = [transform_points(m.graph.poses[sid], c) if c is not None else np.zeros((0, 3)) for sid, c in held]
         # each submap's points against its own cameras (another's may stand nearer: a walk round a courtyard)
         depths = [d for d in map(camera_depth, points, cams) if d is not None]
+        ids = ", ".join(str(sid) for sid, _ in held)
         try:
             m.gallery.ensure_grid(np.concatenate(points), np.concatenate(cams),
                                   float(np.median(depths)) if depths else None)
         except DemError as e:
-            log.warning("submap %s: no DEM plane from %s points (%s); %s without a DEM layer, and the next "
-                        "submap is tried", ", ".join(str(s) for s, _ in held), "its" if len(held) == 1 else "their",
-                        e, "it joins the map" if len(held) == 1 else f"submap {held[0][0]} joins the map")
+            log.warning("submap %s: no DEM plane from the points (%s); submap %d joins the map without a DEM layer, "
+                        "and the next submap is tried", ids, e, held[0][0])
             held.pop(0)
             return
         finally:
             self.timings["covisibility_s"] += time.perf_counter() - t0
-        log.info("DEM plane and tile %.3g fit to submap%s %s", m.gallery.grid.tile_size, "s" if len(held) > 1 else "",
-                 ", ".join(str(s) for s, _ in held))
+        log.info("DEM plane and tile %.3g fit to submap(s) %s", m.gallery.grid.tile_size, ids)
         self._held = []
         for sid, centres in held:
             pts = m.store.get(sid)

@@ -25,6 +25,7 @@ from there (``landmarks`` guess) and verifies it like any other.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -33,7 +34,7 @@ from scipy.spatial import cKDTree
 from vggt_slam_pp.errors import GeometryError
 from vggt_slam_pp.frontend.types import Landmarks
 from vggt_slam_pp.geometry.alignment import umeyama
-from vggt_slam_pp.geometry.lie import transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, transform_points
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,13 @@ class AppearanceConfig:
     # <= 0: never refused
     guess: bool = True  # registration also starts from the alignment of the two submaps' landmarks
     guess_min_inliers: int = 12  # ... when at least this many mutual descriptor matches agree on it
+    # the landmarks *confirm* a verified loop when their own alignment, from at least confirm_min_inliers agreeing
+    # matches, is the loop's within these (a lone loop may then correct up to BackendConfig.lone_confirmed_sigmas):
+    confirm_min_inliers: int = 30
+    confirm_deg: float = 3.0  # rotation between the two alignments
+    confirm_log_scale: float = 0.05  # |log| of their scale ratio
+    confirm_radius_share: float = 0.5  # median distance between the two alignments' placements of the agreeing
+    # query landmarks, as a share of radius_tiles
 
 
 @dataclass(frozen=True)
@@ -64,11 +72,32 @@ class ImageCheck:
 
     def guesses(self) -> dict[str, np.ndarray]:
         """``{"landmarks": T_match_query}`` (:func:`landmark_alignment`), or {} when too few agree."""
+        found = self.alignment
+        return {"landmarks": found.T_match_query} if found is not None else {}
+
+    @cached_property
+    def alignment(self) -> LandmarkAlignment | None:
+        """The alignment the two submaps' landmarks agree on (:func:`landmark_alignment`), or None (too few
+        agree, or ``config.guess`` off)."""
         if not self.config.guess:
-            return {}
-        found = landmark_alignment(self.query, self.match, self.radius, self.config.max_hamming,
-                                   self.config.guess_min_inliers, self.seed)
-        return {"landmarks": found[0]} if found is not None else {}
+            return None
+        return landmark_alignment(self.query, self.match, self.radius, self.config.max_hamming,
+                                  self.config.guess_min_inliers, self.seed)
+
+    def confirms(self, T_match_query: np.ndarray) -> bool:
+        """Whether the landmarks' own alignment (:attr:`alignment`, from at least ``confirm_min_inliers``
+        agreeing matches) is ``T_match_query`` [4,4] within ``confirm_deg``, ``confirm_log_scale`` and, at
+        the agreeing query landmarks, ``confirm_radius_share`` of the radius: two independent measurements
+        of the loop, the images' and the points', found the same pose."""
+        c, found = self.config, self.alignment
+        if found is None or found.inliers < c.confirm_min_inliers:
+            return False
+        s, R, _ = decompose_sim3(sim3_inverse(found.T_match_query) @ np.asarray(T_match_query, float))
+        angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        apart = np.linalg.norm(transform_points(T_match_query, found.query_xyz)
+                               - transform_points(found.T_match_query, found.query_xyz), axis=1)
+        return bool(angle <= c.confirm_deg and abs(np.log(s)) <= c.confirm_log_scale
+                    and np.median(apart) <= c.confirm_radius_share * self.radius)
 
     def support(self, T_match_query: np.ndarray) -> AppearanceSupport:
         return appearance_support(self.query, self.match, T_match_query, self.radius, self.config.max_hamming,
@@ -77,6 +106,19 @@ class ImageCheck:
     def disagrees(self, support: AppearanceSupport) -> bool:
         """Whether the images can judge an alignment (enough comparable landmarks) and reject it."""
         return support.comparable >= self.config.min_comparable and support.agreeing < self.config.min_agreeing
+
+
+@dataclass(frozen=True)
+class LandmarkAlignment:
+    """What :func:`landmark_alignment` found: the alignment and the landmark pairs that agree with it."""
+
+    T_match_query: np.ndarray  # [4,4] Sim(3)
+    query_xyz: np.ndarray  # [K,3] the agreeing query landmarks, query frame
+    match_xyz: np.ndarray  # [K,3] their matches, match frame
+
+    @property
+    def inliers(self) -> int:
+        return len(self.query_xyz)
 
 
 @dataclass(frozen=True)
@@ -121,9 +163,9 @@ def appearance_support(query: Landmarks, match: Landmarks, T_match_query: np.nda
 
 
 def landmark_alignment(query: Landmarks, match: Landmarks, radius: float, max_hamming: int, min_inliers: int,
-                       seed: int = 0, hypotheses: int = 256) -> tuple[np.ndarray, int] | None:
-    """``(T_match_query [4,4], inliers)`` from the landmarks alone: mutual nearest ORB descriptors at most
-    ``max_hamming`` bits apart, and the similarity that takes the most query landmarks within ``radius``
+                       seed: int = 0, hypotheses: int = 256) -> LandmarkAlignment | None:
+    """The alignment of ``query``'s landmarks onto ``match``'s from the landmarks alone: mutual nearest ORB
+    descriptors at most ``max_hamming`` bits apart, and the similarity that takes the most query landmarks within ``radius``
     (match frame units) of their match's: the best of ``hypotheses`` 3-point Umeyama similarities (seeded
     draws, solved all at once), refitted on its inliers; None when fewer than ``min_inliers`` agree."""
     if len(query) < 3 or len(match) < 3:
@@ -148,8 +190,9 @@ def landmark_alignment(query: Landmarks, match: Landmarks, radius: float, max_ha
         except GeometryError:
             return None
         best = np.linalg.norm(transform_points(fit, src) - dst, axis=1) <= radius
-    n = int(best.sum())
-    return (fit, n) if n >= min_inliers else None
+    if int(best.sum()) < min_inliers:
+        return None
+    return LandmarkAlignment(fit, src[best], dst[best])
 
 
 def _similarities(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -312,7 +312,9 @@ class LoopCloser:
         drifted, measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified
         loop between the same places disagree with it (:meth:`contradicted`). With ``lone_needs_images``, a loop
         registered from points with landmarks must also be one its images could judge (they refuse what they
-        judge and disagree with at registration)."""
+        judge and disagree with at registration). A loop whose images confirm its pose (``r.images_confirm``: the
+        landmarks' own alignment is the loop's) may correct up to ``lone_confirmed_sigmas`` sigmas: under
+        realistic drift a right revisit often needs more than one."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:
@@ -321,11 +323,13 @@ class LoopCloser:
                 < self.config.appearance.min_comparable):
             return False  # alone, and its images cannot judge it (a street seen the other way, a crossing)
         b = self.bounds(r.match, r.query)
+        k = (self.config.lone_confirmed_sigmas if r.images_confirm else 1.0) / 3.0  # the bounds are 3 sigma
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
-        log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f)",
-                  r.query, r.match, log_s, b.max_log_scale / 3, angle, b.max_yaw_deg / 3, moved, b.max_translation / 3)
-        if not ((log_s <= b.max_log_scale / 3 or r.scale_cue > 0) and angle <= b.max_yaw_deg / 3
-                and moved <= b.max_translation / 3):
+        log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f), "
+                  "confirmed by its images: %s", r.query, r.match, log_s, b.max_log_scale / 3, angle,
+                  b.max_yaw_deg / 3, moved, b.max_translation / 3, r.images_confirm)
+        if not ((log_s <= k * b.max_log_scale or r.scale_cue > 0) and angle <= k * b.max_yaw_deg
+                and moved <= k * b.max_translation):
             return False
         against = self.contradicted(r) if self.config.lone_needs_no_contradiction else []
         if against:  # one of the two is wrong, and this loop alone cannot say which

@@ -172,6 +172,7 @@ class LoopResult:
     # measured; backend/appearance.py)
     appearance_comparable: int = -1  # query landmarks the alignment brings near a match landmark seen from a
     # similar direction (-1: not measured)
+    images_confirm: bool = False  # the landmarks' own alignment is this loop's (ImageCheck.confirms)
     seconds: float = 0.0  # CPU time of its registration and verification (the back-end's thread)
 
     def to_dict(self) -> dict:
@@ -181,7 +182,7 @@ class LoopResult:
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
                 "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
                 "appearance": self.appearance, "appearance_comparable": self.appearance_comparable,
-                "seconds": self.seconds,
+                "images_confirm": self.images_confirm, "seconds": self.seconds,
                 **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {}),
                 **({"information": self.information.tolist()} if self.information is not None else {})}
 
@@ -315,7 +316,8 @@ def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
 
 
 def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals: np.ndarray, radii: np.ndarray,
-                       scale_rounds: int = 3, damping: float = 1e-3, check: tuple[int, Callable] | None = None
+                       scale_rounds: int = 3, damping: float = 1e-3, check: tuple[int, Callable] | None = None,
+                       anchors: tuple[np.ndarray, np.ndarray] | None = None
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Sim(3) ``T`` with ``T src ~ dst`` by point-to-plane ICP, one damped Gauss-Newton step per radius.
 
@@ -328,6 +330,9 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
     poorly constrained directions, and the centre ``m`` [3] (world) that step was taken about.
     ``check`` = (iteration k, test): before step k, ``test(T)`` decides whether the fit is worth finishing;
     None when it is not (a hopeless initial guess stops there).
+    ``anchors`` = ([A,3] source points, [A,3] their known correspondences in ``dst``'s frame): pairs that are
+    matched by something other than closeness (image features), each a point-to-point residual with the
+    same robust weights; they hold the in-plane motion that a ground-dominated cloud leaves free.
     """
     T = np.eye(4)
     H = np.zeros((7, 7))
@@ -346,6 +351,13 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
         res = np.einsum("ij,ij->i", n, p - q)
         J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", n, pc)[:, None]])
         w = 1.0 / (1.0 + (res / (r / 4.0)) ** 2)
+        if anchors is not None:
+            pa = transform_points(T, anchors[0]) - m
+            res_a = pa + m - anchors[1]  # [A,3]
+            w_a = 1.0 / (1.0 + (np.linalg.norm(res_a, axis=1) / (r / 4.0)) ** 2)
+            J_a = np.concatenate([np.hstack([np.cross(pa, np.eye(3)[k]), np.tile(np.eye(3)[k], (len(pa), 1)), pa[:, k:k + 1]])
+                                  for k in range(3)])  # [3A,7], component-major
+            J, res, w = np.vstack([J, J_a]), np.r_[res, res_a.T.ravel()], np.r_[w, np.tile(w_a, 3)]
         H = (J * w[:, None]).T @ J
         dim = 7 if it >= len(radii) - scale_rounds else 6
         A = H[:dim, :dim] + damping * np.trace(H[:dim, :dim]) / dim * np.eye(dim)
@@ -627,8 +639,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                 d_s = struct_tree.query(transform_points(T, start[own_structure]), distance_upper_bound=r_in)[0]
                 return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
 
+            la = images.alignment if images is not None and name == "landmarks" else None
             fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
-                                     check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None)
+                                     check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None,
+                                     anchors=None if la is None else (transform_points(G, la.query_xyz), la.match_xyz))
             if fit is None:
                 log.debug("loop %d->%d guess %s: structure overlap below %.2f after %d ICP iterations", query, match,
                           name, c.icp_check_share * c.min_structure_overlap, c.icp_check_iteration)
@@ -694,6 +708,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             if images.disagrees(support):
                 return reject(f"images disagree: {support.agreeing} of {support.comparable} comparable landmarks "
                               "agree", **kw)
+            kw.update(images_confirm=images.confirms(Z))
         info = loop_information(H, best.centre, best.T_icp, np.eye(4), best.G, max(residual, c.min_trans_sigma_tiles * unit),
                                 np.r_[[c.floor_rot_sigma] * 3, [c.floor_trans_sigma_tiles * unit] * 3, c.floor_scale_sigma])
         return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)

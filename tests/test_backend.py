@@ -361,6 +361,11 @@ def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disa
     near = make_sim3(1.0, np.eye(3), np.array([1.0, 0.5, 0.0]))
     r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, images=same)
     assert r.accepted and r.guess == "odometry"  # the points verified it, and the images agree
+    assert r.images_confirm  # ... on the same pose as their own alignment
+    assert not register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local).images_confirm
+    no_guess = ImageCheck(same.query, same.match, 2.0, AppearanceConfig(guess=False))  # no alignment of their own
+    r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, images=no_guess)
+    assert r.accepted and not r.images_confirm
     r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, images=other)
     assert not r.accepted and r.reason.startswith("images disagree") and r.appearance_comparable == 300
     # an alignment beyond what odometry allows is not refined at all (ICP never runs: no point guess is in reach)
@@ -425,8 +430,10 @@ def test_icp_anchors_hold_the_in_plane_motion_that_a_ground_only_cloud_leaves_fr
     T_plain = icp_point_to_plane(moved, ftree, flat, fnormals, radii)[0]
     assert np.linalg.norm(transform_points(T_plain, moved) - flat[::4], axis=1).mean() > 1.0
     features = flat[::97] + [0.0, 0.0, 1.5]  # facade corners above the ground, seen in both submaps' images
+    wrong = features.copy()
+    wrong[::5] += rng.uniform(-6.0, 6.0, wrong[::5].shape) * [1.0, 1.0, 0.0]  # a fifth of the pairs mismatched
     T_anch = icp_point_to_plane(moved, ftree, flat, fnormals, radii,
-                                anchors=(transform_points(off, features), features))[0]
+                                anchors=(transform_points(off, features), wrong))[0]
     assert np.linalg.norm(transform_points(T_anch, moved) - flat[::4], axis=1).mean() < 0.05
 
 
@@ -1633,11 +1640,15 @@ def test_the_images_tell_a_loop_from_a_look_alike_alignment():
     check = ImageCheck(b, a, 2.0, AppearanceConfig())
     assert check.alignment is not None and check.confirms(truth)
     centre = b.xyz.mean(0).astype(float)
-    for off in (so3_exp(np.array([0.0, 0.0, np.radians(5.0)])), 1.1 * np.eye(3)):
-        about = make_sim3(1.0, np.eye(3), centre) @ make_sim3(1.0, np.eye(3), np.zeros(3))
+    for off, alone in ((so3_exp(np.array([0.0, 0.0, np.radians(5.0)])), dict(confirm_log_scale=9.0)),
+                       (1.1 * np.eye(3), dict(confirm_deg=180.0))):  # each limit tested with the others open
+        about = np.eye(4)
         about[:3, :3] = off
         about[:3, 3] = centre - off @ centre
-        assert not check.confirms(truth @ about)
+        lenient = ImageCheck(b, a, 2.0, AppearanceConfig(confirm_radius_share=1e9, **alone))
+        assert not lenient.confirms(truth @ about)
+        assert ImageCheck(b, a, 2.0, AppearanceConfig(confirm_radius_share=1e9, confirm_deg=180.0,
+                                                     confirm_log_scale=9.0)).confirms(truth @ about)
     assert not check.confirms(make_sim3(1.0, np.eye(3), np.array([2.0, 0.0, 0.0])) @ truth)
     assert not ImageCheck(b, a, 2.0, AppearanceConfig(confirm_min_inliers=10_000)).confirms(truth)
 

@@ -49,8 +49,9 @@ class AppearanceConfig:
     # <= 0: never refused
     guess: bool = True  # registration also starts from the alignment of the two submaps' landmarks
     guess_min_inliers: int = 12  # ... when at least this many mutual descriptor matches agree on it
-    # the landmarks *confirm* a verified loop when their own alignment, from at least confirm_min_inliers agreeing
-    # matches, is the loop's within these (a lone loop may then correct up to BackendConfig.lone_confirmed_sigmas):
+    # the landmarks *confirm* a verified loop when their own alignment (needs guess on), from at least
+    # confirm_min_inliers agreeing matches, is the loop's within these (a lone loop may then correct up to
+    # BackendConfig.lone_confirmed_sigmas):
     confirm_min_inliers: int = 30
     confirm_deg: float = 3.0  # rotation between the two alignments
     confirm_log_scale: float = 0.05  # |log| of their scale ratio
@@ -87,8 +88,11 @@ class ImageCheck:
     def confirms(self, T_match_query: np.ndarray) -> bool:
         """Whether the landmarks' own alignment (:attr:`alignment`, from at least ``confirm_min_inliers``
         agreeing matches) is ``T_match_query`` [4,4] within ``confirm_deg``, ``confirm_log_scale`` and, at
-        the agreeing query landmarks, ``confirm_radius_share`` of the radius: two independent measurements
-        of the loop, the images' and the points', found the same pose."""
+        the agreeing query landmarks, ``confirm_radius_share`` of the radius: the pose the points verified
+        (structure, free space) is the one the images' matches agree on. For a loop refined from the
+        landmarks' guess, whose ICP holds those pairs (``register_loop``), the two are not independent in
+        pose; the points' verification and the landmarks' consensus still are. False without an alignment
+        (``config.guess`` off, or too few agree)."""
         c, found = self.config, self.alignment
         if found is None or found.inliers < c.confirm_min_inliers:
             return False

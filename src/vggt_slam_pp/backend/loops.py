@@ -303,8 +303,8 @@ class LoopCloser:
             yield k, bool(agrees), dq
 
     def odometry_consistent(self, r: LoopResult) -> bool:
-        """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`) closes
-        a consistent cycle with the odometry chain itself: it needs no partner loop, if its structure overlap
+        """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`; two where its
+        images confirm it, below) closes a consistent cycle with the odometry chain itself: it needs no partner loop, if its structure overlap
         is at least ``lone_min_structure_overlap`` (every wrong loop accepted alone on the bench worlds,
         realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25; a loop
         registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its
@@ -313,8 +313,8 @@ class LoopCloser:
         loop between the same places disagree with it (:meth:`contradicted`). With ``lone_needs_images``, a loop
         registered from points with landmarks must also be one its images could judge (they refuse what they
         judge and disagree with at registration). A loop whose images confirm its pose (``r.images_confirm``: the
-        landmarks' own alignment is the loop's) may correct up to ``lone_confirmed_sigmas`` sigmas: under
-        realistic drift a right revisit often needs more than one."""
+        landmarks' own alignment, from enough agreeing pairs, is the pose the points verified) may correct up
+        to ``lone_confirmed_sigmas`` sigmas: under realistic drift a right revisit often needs more than one."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:
@@ -323,13 +323,14 @@ class LoopCloser:
                 < self.config.appearance.min_comparable):
             return False  # alone, and its images cannot judge it (a street seen the other way, a crossing)
         b = self.bounds(r.match, r.query)
-        k = (self.config.lone_confirmed_sigmas if r.images_confirm else 1.0) / 3.0  # the bounds are 3 sigma
+        sigmas = max(1.0, self.config.lone_confirmed_sigmas) if r.images_confirm else 1.0
+        share = sigmas / 3.0  # the bounds are 3 sigma
         log_s, angle, moved = correction_size(r.correction, self.map.centroid_world(r.query))
         log.debug("lone loop %d->%d: scale %.3f (one sigma %.3f), turn %.2f deg (%.2f), move %.2f (%.2f), "
                   "confirmed by its images: %s", r.query, r.match, log_s, b.max_log_scale / 3, angle,
                   b.max_yaw_deg / 3, moved, b.max_translation / 3, r.images_confirm)
-        if not ((log_s <= k * b.max_log_scale or r.scale_cue > 0) and angle <= k * b.max_yaw_deg
-                and moved <= k * b.max_translation):
+        if not ((log_s <= share * b.max_log_scale or r.scale_cue > 0) and angle <= share * b.max_yaw_deg
+                and moved <= share * b.max_translation):
             return False
         against = self.contradicted(r) if self.config.lone_needs_no_contradiction else []
         if against:  # one of the two is wrong, and this loop alone cannot say which

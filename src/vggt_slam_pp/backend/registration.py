@@ -332,7 +332,8 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
     None when it is not (a hopeless initial guess stops there).
     ``anchors`` = ([A,3] source points, [A,3] their known correspondences in ``dst``'s frame): pairs that are
     matched by something other than closeness (image features), each a point-to-point residual with the
-    same robust weights; they hold the in-plane motion that a ground-dominated cloud leaves free.
+    same robust weights; they hold the in-plane motion that a ground-dominated cloud leaves free, and the
+    returned information counts them (a loop refined with them is constrained in-plane by its images).
     """
     T = np.eye(4)
     H = np.zeros((7, 7))
@@ -355,7 +356,8 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
             pa = transform_points(T, anchors[0]) - m
             res_a = pa + m - anchors[1]  # [A,3]
             w_a = 1.0 / (1.0 + (np.linalg.norm(res_a, axis=1) / (r / 4.0)) ** 2)
-            J_a = np.concatenate([np.hstack([np.cross(pa, np.eye(3)[k]), np.tile(np.eye(3)[k], (len(pa), 1)), pa[:, k:k + 1]])
+            e = np.eye(3)
+            J_a = np.concatenate([np.hstack([np.cross(pa, e[k]), np.tile(e[k], (len(pa), 1)), pa[:, k:k + 1]])
                                   for k in range(3)])  # [3A,7], component-major
             J, res, w = np.vstack([J, J_a]), np.r_[res, res_a.T.ravel()], np.r_[w, np.tile(w_a, 3)]
         H = (J * w[:, None]).T @ J
@@ -480,7 +482,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             optional): where they can judge the result and disagree with it, it is refused ("images
             disagree"); where the point guesses fail to verify, the alignment the landmarks agree on is one
             more guess (``landmarks``; not rescaled to the height cue: its scale is measured), if ICP could
-            still bring it within the bounds and the cue.
+            still bring it within the bounds and the cue, and its ICP holds the landmark pairs that agree on
+            it (``anchors``); a verified loop records whether that alignment confirms it
+            (``LoopResult.images_confirm``, :meth:`~vggt_slam_pp.backend.appearance.ImageCheck.confirms`).
         height_measured: whether the recording's heights have been measured to hold steady
             (:meth:`~vggt_slam_pp.backend.map.Map.height_cue`). If not, the cue is only a loose bound
             (``height_cue_unmeasured_tolerance``) and the guesses keep their own scale.

@@ -305,9 +305,10 @@ class LoopCloser:
     def odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`; two where
         its images confirm it, below) closes a consistent cycle with the odometry chain itself: it needs no
-        partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop accepted alone on the bench worlds,
-        realistic and default profiles, 1,000 submaps, sat at 0.25-0.27 against the threshold 0.25; a loop
-        registered from images is exempt: its "structure overlap" is the share of keyframes registered). Its
+        partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop
+        accepted alone on the bench worlds, realistic and default profiles, 1,000 submaps, sat at 0.25-0.27
+        against the threshold 0.25; a loop registered from images is exempt: its "structure overlap" is the
+        share of keyframes registered). Its
         scale change is not tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry
         drifted, measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified
         loop between the same places disagree with it (:meth:`contradicted`). With ``lone_needs_images``, a loop

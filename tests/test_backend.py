@@ -358,6 +358,24 @@ def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disa
     r = register_loop(5, 1, seen_again, world, far, np.eye(4), plane, 2.0, config=local, images=same)
     assert r.accepted and r.guess == "landmarks", r.reason
     assert np.allclose(r.T_match_query, np.eye(4), atol=0.05) and r.appearance >= 250
+    # the same from a query whose own frame is turned, shifted and scaled against the match's: the guess and the
+    # landmark pairs its ICP holds are carried into the match's frame alike
+    Q = make_sim3(1.3, so3_exp(np.array([0.0, 0.0, np.radians(40.0)])), np.array([3.0, -2.0, 0.0]))  # T_match_query
+    Qi = sim3_inverse(Q)
+    lq = same.query
+    own = ImageCheck(Landmarks(transform_points(Qi, lq.xyz.astype(float)).astype(np.float32), lq.descriptors,
+                               lq.keyframe, (lq.view.astype(float) @ Q[:3, :3] / 1.3).astype(np.float32)),
+                     same.match, 2.0, AppearanceConfig())
+    held = []
+    with monkeypatch.context() as m:
+        m.setattr(registration, "icp_point_to_plane", lambda *a, _icp=registration.icp_point_to_plane, **k:
+                  held.append(k.get("anchors")) or _icp(*a, **k))
+        r = register_loop(5, 1, transform_points(Qi, seen_again), world, far @ Q, np.eye(4), plane, 2.0, config=local,
+                          images=own)
+    assert r.accepted and r.guess == "landmarks", r.reason
+    assert np.allclose(r.T_match_query, Q, atol=0.05)
+    anchored = [a for a in held if a is not None]  # the landmarks' guess only, its pairs in the match's frame
+    assert len(anchored) == 1 and np.median(np.linalg.norm(anchored[0][0] - anchored[0][1], axis=1)) < 0.2
     near = make_sim3(1.0, np.eye(3), np.array([1.0, 0.5, 0.0]))
     r = register_loop(5, 1, seen_again, world, near, np.eye(4), plane, 2.0, config=local, images=same)
     assert r.accepted and r.guess == "odometry"  # the points verified it, and the images agree

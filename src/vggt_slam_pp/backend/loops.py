@@ -308,14 +308,14 @@ class LoopCloser:
         partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop
         accepted alone on the bench worlds, realistic and default profiles, 1,000 submaps, sat at 0.25-0.27
         against the threshold 0.25; a loop registered from images is exempt: its "structure overlap" is the
-        share of keyframes registered). Its
-        scale change is not tested when the cameras' heights measured it (``r.scale_cue``): it is then what odometry
-        drifted, measured, not a sign of a wrong place (its turn and move still are tested). Nor may a verified
-        loop between the same places disagree with it (:meth:`contradicted`). With ``lone_needs_images``, a loop
-        registered from points with landmarks must also be one its images could judge (they refuse what they
-        judge and disagree with at registration). A loop whose images confirm its pose (``r.images_confirm``: the
-        landmarks' own alignment, from enough agreeing pairs, is the pose the points verified) may correct up
-        to ``lone_confirmed_sigmas`` sigmas: under realistic drift a right revisit often needs more than one."""
+        share of keyframes registered). Its scale change is not tested when the cameras' heights measured it
+        (``r.scale_cue``): it is then what odometry drifted, measured, not a sign of a wrong place (its turn and
+        move still are tested). Nor may a verified loop between the same places disagree with it
+        (:meth:`contradicted`). With ``lone_needs_images``, a loop registered from points with landmarks must
+        also be one its images could judge (they refuse what they judge and disagree with at registration). A
+        loop whose images confirm its pose (``r.images_confirm``: the landmarks' own alignment, from enough
+        agreeing pairs, is the pose the points verified) may correct up to ``lone_confirmed_sigmas`` sigmas:
+        under realistic drift a right revisit often needs more than one."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:

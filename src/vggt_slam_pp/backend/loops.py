@@ -311,8 +311,7 @@ class LoopCloser:
         share of keyframes registered). Its scale change is not tested when the cameras' heights measured it
         (``r.scale_cue``): it is then what odometry drifted, measured, not a sign of a wrong place (its turn and
         move still are tested). Nor may a verified loop between the same places disagree with it
-        (:meth:`contradicted`), unless its images confirm it and not the other (they then say which of the two
-        is wrong). With ``lone_needs_images``, a loop registered from points with landmarks must
+        (:meth:`contradicted`). With ``lone_needs_images``, a loop registered from points with landmarks must
         also be one its images could judge (they refuse what they judge and disagree with at registration). A
         loop whose images confirm its pose (``r.images_confirm``: the landmarks' own alignment, from enough
         agreeing pairs, is the pose the points verified) may correct up to ``lone_confirmed_sigmas`` sigmas:
@@ -335,8 +334,6 @@ class LoopCloser:
                 and moved <= share * b.max_translation):
             return False
         against = self.contradicted(r) if self.config.lone_needs_no_contradiction else []
-        if r.images_confirm:  # its images say which: only a loop that its own images confirm as well disagrees
-            against = [k for k in against if self.loops[k].images_confirm]
         if against:  # one of the two is wrong, and this loop alone cannot say which
             log.info("loop %d->%d not accepted alone: verified loop(s) %s between the same places disagree",
                      r.query, r.match, [(self.loops[k].query, self.loops[k].match) for k in against])

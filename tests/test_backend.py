@@ -276,6 +276,24 @@ def _revisit(yaw_deg: float, shift, scale: float, rng, place):
     return place + rng.normal(0, 0.01, place.shape), D
 
 
+def test_symmetric_scale_averages_the_forward_fit_with_the_fit_of_the_match_back_onto_the_query(rng):
+    """A verified loop's scale is the mean, in log-scale, of its ICP's from the query onto the match and of the
+    reverse fit's (each direction shrinks the cloud it moves onto the other's overlap): from the right pose it
+    stays; from a pose 10 % too small, the reverse fit sees the match 10 % too large, and the mean halves the
+    error, about the query's overlapping points, which stay in place. Both submaps overlap on half of each."""
+    from vggt_slam_pp.backend.registration import symmetric_scale
+
+    place = np.concatenate([_place(rng, n_ground=6000), _place(rng, n_ground=6000, seed_boxes=3) + [15.0, 0, 0]])
+    match, query = place[place[:, 0] < 30], place[place[:, 0] > 15] + rng.normal(0, 0.01, (int((place[:, 0] > 15).sum()), 3))
+    same = symmetric_scale(np.eye(4), query, match, 0.4, 6)
+    assert abs(np.log(decompose_sim3(same)[0])) < 0.01
+    overlap = query[query[:, 0] < 30].mean(0)
+    small = make_sim3(0.9, np.eye(3), 0.1 * overlap)  # scaled by 0.9 about the overlap's centroid
+    fixed = symmetric_scale(small, query, match, 0.4, 6)
+    assert abs(np.log(decompose_sim3(fixed)[0]) - 0.5 * np.log(0.9)) < 0.015
+    assert np.linalg.norm(transform_points(fixed, overlap[None])[0] - overlap) < 0.1  # the overlap stays
+
+
 @pytest.mark.parametrize("yaw, shift, scale", [(3, (0.8, -0.5), 1.0), (40, (9, 4), 1.25), (-150, (-6, 8), 0.8)])
 def test_register_loop_finds_a_revisit_without_a_good_estimate_and_rejects_another_place(rng, yaw, shift, scale):
     from vggt_slam_pp.backend.registration import LoopBounds
@@ -472,7 +490,8 @@ def test_icp_fits_every_structure_point_and_a_sample_of_the_flat_ground(rng, mon
     results = {}
     for cap in (0, 300):
         fitted.clear()
-        config = dataclasses.replace(reg.RegistrationConfig(), icp_max_flat_points=cap, max_points=20_000)
+        config = dataclasses.replace(reg.RegistrationConfig(), icp_max_flat_points=cap, max_points=20_000,
+                                     symmetric_scale=False)  # the forward fits alone
         results[cap] = register_loop(5, 1, seen_again, world, T_q, np.eye(4), plane, 2.0, bounds=wide, config=config)
         assert results[cap].accepted, results[cap].reason
         assert np.allclose(results[cap].T_match_query, np.eye(4), atol=0.05)

@@ -294,6 +294,25 @@ def test_symmetric_scale_averages_the_forward_fit_with_the_fit_of_the_match_back
     assert np.linalg.norm(transform_points(fixed, overlap[None])[0] - overlap) < 0.1  # the overlap stays
 
 
+def test_a_loop_s_scale_is_made_symmetric_only_where_the_cameras_heights_have_not_measured_it(rng, monkeypatch):
+    import vggt_slam_pp.backend.registration as reg
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    world = _place(rng)
+    seen_again, T_q = _revisit(3, (0.8, -0.5), 1.0, rng, world)
+    wide = reg.LoopBounds(max_log_scale=0.4, max_translation=30.0, max_yaw_deg=180.0)
+    calls = []
+    plain = reg.symmetric_scale
+    monkeypatch.setattr(reg, "symmetric_scale", lambda Z, *a, **k: calls.append(1) or plain(Z, *a, **k))
+    for heights, measured, made in ((None, True, 1), ((1.5, 1.5), False, 1), ((1.5, 1.5), True, 0)):
+        calls.clear()
+        h_q, h_m = heights or (None, None)
+        r = register_loop(5, 1, seen_again, world, T_q, np.eye(4), plane, 2.0, bounds=wide, height_query=h_q,
+                          height_match=h_m, height_measured=measured)
+        assert r.accepted, r.reason
+        assert len(calls) == made and np.allclose(r.T_match_query, np.eye(4), atol=0.05)
+
+
 @pytest.mark.parametrize("yaw, shift, scale", [(3, (0.8, -0.5), 1.0), (40, (9, 4), 1.25), (-150, (-6, 8), 0.8)])
 def test_register_loop_finds_a_revisit_without_a_good_estimate_and_rejects_another_place(rng, yaw, shift, scale):
     from vggt_slam_pp.backend.registration import LoopBounds

@@ -32,8 +32,9 @@ rescaled to it, and a result at another scale is refused (``RegistrationConfig.h
    classified in its own frame; a fit that lifts its ground off the match's is refused), the RMS
    ``residual``, the bounds (scale, yaw and shift of the
    correction), and no distinct alignment nearly as good (``ambiguity_ratio``: repetitive structure).
-   A rejected candidate keeps its reason. A verified loop's scale is then made symmetric
-   (``symmetric_scale``, :func:`symmetric_scale`). The back-end then asks for a cycle-consistent second loop
+   A rejected candidate keeps its reason. Where the cameras' heights have not measured its scale, a
+   verified loop's scale is then made symmetric (``symmetric_scale``, :func:`symmetric_scale`). The back-end
+   then asks for a cycle-consistent second loop
    or a correction within one sigma of the drift model before the loop enters the graph
    (:mod:`vggt_slam_pp.backend.backend`).
 
@@ -77,9 +78,10 @@ class RegistrationConfig:
     icp_iterations: int = 12  # the rejection radius shrinks over these, then
     icp_final_iterations: int = 6  # these at the inlier radius
     icp_scale_rounds: int = 3  # the last rounds solve for scale too (more: a partial overlap shrinks onto itself)
-    symmetric_scale: bool = True  # a verified loop's scale is the mean (in log) of ICP's from the query onto the
-    # match and from the match back onto the query: each direction shrinks the cloud it moves onto the other's
-    # overlap (measured on held-out-like V1_02, realistic seed 2: loops' log-scale error median -0.035, mean -0.084;
+    symmetric_scale: bool = True  # where the cameras' heights have not measured the loop's scale (a flying or
+    # hand-held camera, a short recording), a verified loop's scale is the mean (in log) of ICP's from the query
+    # onto the match and from the match back onto the query: each direction shrinks the cloud it moves onto the
+    # other's overlap (held-out-like V1_02, realistic seed 2: loops' log-scale error median -0.035, mean -0.084;
     # docs/backend.md, "registration")
     icp_radius_tiles: float = 2.0
     icp_check_iteration: int = 8  # a fit whose structure overlap at the inlier radius is then still below
@@ -737,7 +739,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                 return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
                               f"{best.rank:.2f})", **kw)
         T_icp = best.T_icp
-        if c.symmetric_scale:
+        if c.symmetric_scale and not (cue is not None and height_measured):  # no measured scale holds ICP's
             Z = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k)
             T_icp = Z @ sim3_inverse(best.G)
             C = T_world_match @ Z @ sim3_inverse(T_world_query)

@@ -295,6 +295,7 @@ def test_symmetric_scale_averages_the_forward_fit_with_the_fit_of_the_match_back
 
 
 def test_a_loop_s_scale_is_made_symmetric_only_where_the_cameras_heights_have_not_measured_it(rng, monkeypatch):
+    """No cue, or a cue not yet measured to hold: symmetric; a measured cue holds the scale: ICP's own."""
     import vggt_slam_pp.backend.registration as reg
 
     plane = GroundPlane(np.zeros(3), np.eye(3))

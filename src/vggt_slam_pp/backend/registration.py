@@ -740,9 +740,10 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               f"{best.rank:.2f})", **kw)
         T_icp = best.T_icp
         if c.symmetric_scale and not (cue is not None and height_measured):  # no measured scale holds ICP's
-            Z = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k)
-            T_icp = Z @ sim3_inverse(best.G)
-            C = T_world_match @ Z @ sim3_inverse(T_world_query)
+            Z_sym = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k)
+            if outside_bounds(Z_sym) is None:  # the verified limits hold for the loop that enters the graph
+                Z, T_icp = Z_sym, Z_sym @ sim3_inverse(best.G)
+                C = T_world_match @ Z @ sim3_inverse(T_world_query)
         if images is not None:
             support = images.support(Z)
             kw.update(appearance=support.agreeing, appearance_comparable=support.comparable)

@@ -456,14 +456,15 @@ def _ground_offset(src_ground: np.ndarray, dst_ground_tree: cKDTree, dst_ground_
 
 
 def symmetric_scale(Z: np.ndarray, src: np.ndarray, dst: np.ndarray, radius: float, iterations: int,
-                    normals_k: int = 10) -> np.ndarray:
+                    normals_k: int = 10, dst_tree: cKDTree | None = None) -> np.ndarray:
     """``Z`` (T_match_query, from ICP of the query's points ``src`` [N,3] onto the match's ``dst`` [M,3]) with
     its scale replaced by the mean in log-scale of its own and the reverse fit's: the match's points, brought
     into the query's frame by ``Z^-1``, fitted back onto the query's by ``iterations`` rounds of point-to-plane
     ICP at ``radius`` (match units) with scale free. A fit with free scale shrinks the cloud it moves onto the
     part of the other that overlaps it (points past the overlap's edge pull inwards), so the two directions
     err in opposite ways; the rescaling is about the query's overlapping points, which stay in place.
-    Returns ``Z`` unchanged where the reverse fit has too few pairs."""
+    ``dst_tree``: ``dst``'s KD-tree, where the caller has it. Returns ``Z`` unchanged where either fit has
+    fewer than 10 pairs."""
     s_z = float(decompose_sim3(Z)[0])
     r_q = radius / s_z  # the same radius in the query's units
     tree_q = cKDTree(src)
@@ -473,7 +474,7 @@ def symmetric_scale(Z: np.ndarray, src: np.ndarray, dst: np.ndarray, radius: flo
         return Z
     fit = icp_point_to_plane(back[near], tree_q, src, point_normals(src, tree_q, normals_k),
                              np.full(iterations, r_q), scale_rounds=iterations)
-    d = cKDTree(dst).query(transform_points(Z, src), distance_upper_bound=radius)[0]
+    d = (dst_tree or cKDTree(dst)).query(transform_points(Z, src), distance_upper_bound=radius)[0]
     if fit is None or np.isfinite(d).sum() < 10:
         return Z
     s_back = float(decompose_sim3(fit[0])[0])  # the reverse fit's scale on the match's points
@@ -740,7 +741,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               f"{best.rank:.2f})", **kw)
         T_icp = best.T_icp
         if c.symmetric_scale and not (cue is not None and height_measured):  # no measured scale holds ICP's
-            Z_sym = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k)
+            Z_sym = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k, dst_tree=tree)
             if outside_bounds(Z_sym) is None:  # the verified limits hold for the loop that enters the graph
                 Z, T_icp = Z_sym, Z_sym @ sim3_inverse(best.G)
                 C = T_world_match @ Z @ sim3_inverse(T_world_query)

@@ -124,6 +124,10 @@ def test_height_factors_keep_the_scale_of_a_steady_camera_from_wandering(rng):
     good.optimize()
     assert errors(good)[0].max() < max(0.01, 1.5 * before.max())
     assert good.last_solve["height_factors"] == 0
+    # with the gate off, a chain whose heights measure no walk at all still solves, without them
+    flat = PoseGraph(GraphConfig(min_scale_drift=0.0))
+    flat.height_variogram = lambda group=None: (0.0, 0.03)
+    assert flat.scale_noise() is None
     off = PoseGraph(GraphConfig(height_factors=False))  # switched off: the chain stays the odometry's
     chain, _ = _scale_drift_chain(np.random.default_rng(1))
     for k, T in chain.poses.items():

@@ -248,8 +248,8 @@ class PoseGraph:
         ``max_odometry_scale_sigma``), the height sigma keeps the measured ratio to it."""
         c = self.config
         measured = self.height_variogram()
-        if measured is None or measured[0] < c.min_scale_drift:
-            return None
+        if measured is None or measured[0] < c.min_scale_drift or measured[0] <= 0.0:
+            return None  # (no walk measured at all: the heights' weight relative to it is undefined)
         sigma_o, sigma_h = measured
         used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
         return used, max(sigma_h * used / sigma_o, c.min_height_sigma)

@@ -79,6 +79,33 @@ def test_pose_graph_loop_reduces_drift_and_cauchy_rejects_a_bad_loop():
         assert _err(other, gt) > 2 * _err(bad_cauchy, gt)
 
 
+def test_the_loops_of_one_query_count_as_one_measurement():
+    """A query registered against several earlier submaps of a small scene (a hand-held sweep) gets a loop to
+    each, and they share its errors (its scale, its ground): counted as independent they outweigh the accurate
+    odometry and pull the query off by their common error; counted as one they do not (PoseGraph.loop_shares)."""
+    gt = [make_sim3(1.0, np.eye(3), np.array([0.5 * k, 0.0, 0.0])) for k in range(6)]
+    common = make_sim3(1.03, so3_exp(np.array([0.0, 0.0, 0.03])), np.array([0.0, 0.1, 0.0]))  # the query's error
+
+    def solve(shared: bool) -> tuple[float, PoseGraph]:
+        g = PoseGraph(GraphConfig(robust_kernel="none", shared_loops=shared))
+        g.add_node(0, gt[0])
+        for k in range(1, len(gt)):
+            rel = sim3_inverse(gt[k - 1]) @ gt[k]
+            g.add_node(k, gt[k])
+            g.add_edge(Edge(k - 1, k, rel, g.odometry_sigmas(rel, 0.005), "odometry"))
+        for m in range(4):
+            loop = sim3_inverse(gt[m]) @ gt[5] @ common
+            g.add_edge(Edge(m, 5, loop, np.r_[[0.02] * 3, [0.05] * 3, 0.02], "loop"))
+        g.optimize()
+        return float(np.linalg.norm(g.poses[5][:3, 3] - gt[5][:3, 3])), g
+
+    alone, g = solve(False)
+    together, g_shared = solve(True)
+    assert g_shared.loop_shares() == {5: 4} and g.loop_shares() == {}
+    assert alone > 0.06  # four loops with one error: the query goes most of the 0.1 m their common error asks
+    assert together < 0.7 * alone
+
+
 def _scale_drift_chain(rng, n: int = 30, step: float = 0.06):
     """A straight drive (submaps 10 m apart, each at scale 1 in the world) whose odometry edges are off in
     scale by exp(N(0, ``step``)) each: the chained scale is a random walk."""

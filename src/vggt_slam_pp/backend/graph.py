@@ -74,6 +74,7 @@ class GraphConfig:
     # 1-4 % on the bench worlds) are as large as what they would correct (default profile: KITTI 00-driven
     # ATE 2.64 -> 6.5 m with heights at 1.7 %; docs/experiments.md, session 21)
     max_odometry_scale_sigma: float = 0.2  # the measured odometry scale noise is capped here
+    shared_loops: bool = True  # the loops of one query count as one measurement (PoseGraph.loop_shares)
     max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # gnc: a loop is an inlier within this chi-square quantile
 
@@ -254,21 +255,34 @@ class PoseGraph:
         used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
         return used, max(sigma_h * used / sigma_o, c.min_height_sigma)
 
-    def _noise(self, edge: Edge, kernel: str, scale_sigma: float | None = None):
-        """``scale_sigma``: an odometry edge's scale sigma at least this (measured, :meth:`scale_noise`)."""
+    def loop_shares(self) -> dict[int, int]:
+        """Query node -> how many loop edges it has. The loops of one query are registrations of the same points,
+        so they share its errors (its scale, its ground, its own up): in the solve they count as one
+        measurement together, each with its information divided by that number (``GraphConfig.shared_loops``)."""
+        out: dict[int, int] = {}
+        if self.config.shared_loops:
+            for e in self.edges:
+                if e.kind == "loop":
+                    out[e.j] = out.get(e.j, 0) + 1
+        return out
+
+    def _noise(self, edge: Edge, kernel: str, scale_sigma: float | None = None, share: int = 1):
+        """``scale_sigma``: an odometry edge's scale sigma at least this (measured, :meth:`scale_noise`);
+        ``share``: a loop's information divided by this (:meth:`loop_shares`), its robust kernel narrowed to match."""
         import gtsam
 
         if edge.information is not None:
-            base = gtsam.noiseModel.Gaussian.Information(np.asarray(edge.information, float))
+            base = gtsam.noiseModel.Gaussian.Information(np.asarray(edge.information, float) / share)
         else:
-            sig = np.asarray(edge.sigmas, float)
+            sig = np.asarray(edge.sigmas, float) * np.sqrt(share)
             if scale_sigma is not None and edge.kind == "odometry" and scale_sigma > sig[6]:
                 sig = sig.copy()
                 sig[6] = scale_sigma
             base = gtsam.noiseModel.Diagonal.Sigmas(sig)
         if edge.kind != "loop" or kernel == "none":
             return base
-        k = self.config.kernel_width
+        k = self.config.kernel_width / np.sqrt(share)  # the same robust weight at the same residual, 1 / share of
+        # the cost: the kernel still judges each loop by its own sigmas
         est = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
         return gtsam.noiseModel.Robust.Create(est[kernel].Create(k), base)
 
@@ -313,10 +327,12 @@ class PoseGraph:
         err0 = None
         iterations = 0
         scale_sigma, height_sigma = scale_model if heights else (None, None)
+        shares = self.loop_shares()
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
-            for e in touching:
-                noise = self._noise(e, "none" if stage == "gnc" else stage, scale_sigma)
+            for e in touching:  # (GNC's one inlier bound is in each loop's own sigmas: not shared there)
+                noise = self._noise(e, "none" if stage == "gnc" else stage, scale_sigma,
+                                    shares.get(e.j, 1) if e.kind == "loop" and stage != "gnc" else 1)
                 graph.add(gtsam.BetweenFactorSimilarity3(_key(e.i), _key(e.j), to_gtsam(e.T_ij), noise))
             for i in sorted(fixed):
                 graph.add(gtsam.PriorFactorSimilarity3(_key(i), to_gtsam(self.poses[i]), tight))

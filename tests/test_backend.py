@@ -104,6 +104,13 @@ def test_the_loops_of_one_query_count_as_one_measurement():
     assert g_shared.loop_shares() == {5: 4} and g.loop_shares() == {}
     assert alone > 0.06  # four loops with one error: the query goes most of the 0.1 m their common error asks
     assert together < 0.7 * alone
+    # under the robust kernel a shared loop keeps its own weight at its own residual; only its cost is shared
+    edge = next(e for e in g.edges if e.kind == "loop")
+    for r in (np.r_[0.01, 0.0, 0.03, 0.2, 0.1, 0.0, 0.05], np.r_[0.1, 0.0, 0.3, 2.0, 1.0, 0.0, 0.5]):
+        own, shared = g._noise(edge, "cauchy"), g._noise(edge, "cauchy", share=4)
+        d_own, d_shared = own.mahalanobisDistance(r), shared.mahalanobisDistance(r)
+        assert np.isclose(4 * shared.loss(d_shared**2), own.loss(d_own**2))
+        assert np.isclose(shared.robust().weight(d_shared), own.robust().weight(d_own))
 
 
 def _scale_drift_chain(rng, n: int = 30, step: float = 0.06):

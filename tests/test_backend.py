@@ -128,6 +128,40 @@ def _scale_drift_chain(rng, n: int = 30, step: float = 0.06):
     return g, gt
 
 
+def test_the_odometry_scale_walk_is_measured_from_the_loops_where_no_heights_measure_it(rng):
+    """A hand-held camera's odometry walks in scale and no heights measure it: the loops' cycles do
+    (PoseGraph.loop_scale_noise). Measured, the odometry no longer holds its 1 % scale sigma against the loops,
+    and the solve keeps the loops' scale; a front-end that hardly drifts is measured below that sigma and solved
+    as before."""
+    def solve(step: float, measure: bool) -> tuple[PoseGraph, list]:
+        g, gt = _scale_drift_chain(np.random.default_rng(3), n=16, step=step)
+        g.config = GraphConfig(robust_kernel="none", loop_scale_noise=measure)  # (the kernel: other tests)
+        for q in range(4, len(gt)):
+            for m in (q - 4, q - 3):  # revisits 3-4 submaps back, 1 % error in scale and 0.1 tile in position
+                loop = sim3_inverse(gt[m]) @ gt[q] @ make_sim3(float(np.exp(rng.normal(0, 0.01))), np.eye(3),
+                                                                rng.normal(0, 0.1, 3))
+                g.add_edge(Edge(m, q, loop, np.r_[[0.02] * 3, [0.1] * 3, 0.02], "loop"))
+        g.optimize()
+        log_s = np.array([np.log(decompose_sim3(g.poses[k])[0]) for k in range(len(gt))])
+        return g, np.abs(log_s - np.median(log_s))
+
+    measured, err = solve(0.06, True)
+    held, err_held = solve(0.06, False)
+    assert 0.03 < measured.loop_scale_noise() < 0.12  # the edges' 0.06
+    assert measured.last_solve["odometry_scale_sigma"] == pytest.approx(measured.loop_scale_noise())
+    assert measured.last_solve["odometry_scale_measured_by"] == "loops"
+    assert held.last_solve["odometry_scale_sigma"] is held.last_solve["odometry_scale_measured_by"] is None
+    assert err.max() < 0.5 * err_held.max()
+    steady, _ = solve(0.002, True)  # the loops' own 1 % dominates their cycles: measured below the default sigma
+    assert steady.loop_scale_noise() < steady.config.odometry_scale_sigma
+    assert steady.last_solve["odometry_scale_sigma"] is None
+    few = PoseGraph(GraphConfig())  # too few loops measure nothing
+    few.add_node(0, np.eye(4))
+    few.add_node(1, np.eye(4))
+    few.add_edge(Edge(0, 1, np.eye(4), np.full(7, 0.01), "loop"))
+    assert few.loop_scale_noise() is None
+
+
 def test_height_factors_keep_the_scale_of_a_steady_camera_from_wandering(rng):
     """Odometry's scale is a random walk; a camera at one height above its ground measures every submap's
     scale on its own (docs/backend.md, "Height factors"). The graph bounds the scale error with them, and

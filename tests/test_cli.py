@@ -94,6 +94,7 @@ def test_synth_then_info_and_demo(tmp_path, capsys):
     report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
     assert report["frames"] == 20 and np.isfinite(report["ate_rmse_odometry"]) and np.isfinite(report["ate_rmse"])
     assert report["loops_accepted"] >= 0 and (tmp_path / "demo" / "run" / "keyframes.txt").is_file()
+    assert report["odometry_scale_measured_by"] in (None, "heights", "loops") and "odometry_scale_sigma" in report
 
 
 def test_module_entry_point_exit_code(tmp_path):

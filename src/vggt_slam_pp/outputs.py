@@ -27,7 +27,7 @@ With the back-end (:func:`write_backend_outputs`):
 
 :func:`write_backend_outputs` returns the report fields: ``ate_rmse`` (with ground truth), ``loops_accepted``, ``loops_rejected`` (of which
 ``loops_pending`` and ``loops_dropped_by_graph``),
-``backend_s_per_submap``, ``backend_timings``.
+``backend_s_per_submap``, ``backend_timings``, ``odometry_scale_sigma`` (and ``odometry_scale_measured_by``).
 """
 
 from __future__ import annotations
@@ -255,6 +255,10 @@ def write_backend_outputs(out: Path, source, result: FrontendResult, backend: Ba
         "backend_timings": backend.timings,
         # submaps whose query was deferred while the back-end caught up (WorkerConfig.catch_up_lag)
         "backend_queries_deferred": len(backend.skipped),
+        # the odometry's log-scale drift per submap the final solve used, where measured (from the cameras' heights
+        # or the loops' cycles; docs/backend.md, "pose graph"); null: the configured sigma
+        "odometry_scale_sigma": backend.odometry_scale_sigma,
+        "odometry_scale_measured_by": backend.odometry_scale_measured_by,
     }
     gt_pair = source.frame_ground_truth()
     gt = None

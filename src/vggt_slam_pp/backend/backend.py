@@ -100,6 +100,9 @@ class BackendResult:
     # its work, without the time it waited for a CPU the front-end held (the worker runs at idle priority)
     stage_seconds_per_submap: dict[str, list[float]] = field(default_factory=dict)  # stage (STAGES) -> each
     # submap's wall time in it, its deferred query included (where a long run's time goes, window by window)
+    odometry_scale_sigma: float | None = None  # the odometry's log-scale sigma per submap in the last solve where it
+    # was measured (GraphConfig: from the heights or the loops), None: the configured one
+    odometry_scale_measured_by: str | None = None  # "heights" or "loops"
 
 
 class Backend:
@@ -372,4 +375,6 @@ class Backend:
             memory_trace=list(self.memory_trace), placed=self.map.placed_submaps(), skipped=list(self.skipped),
             heights={i: h for i, (h, _) in graph.heights.items()}, height_refs=dict(graph.height_refs),
             cpu_seconds_per_submap=list(self.cpu_seconds),
-            stage_seconds_per_submap={k: list(v) for k, v in self.stage_seconds.items()})
+            stage_seconds_per_submap={k: list(v) for k, v in self.stage_seconds.items()},
+            odometry_scale_sigma=graph.last_solve.get("odometry_scale_sigma"),
+            odometry_scale_measured_by=graph.last_solve.get("odometry_scale_measured_by"))

@@ -74,6 +74,10 @@ class GraphConfig:
     # 1-4 % on the bench worlds) are as large as what they would correct (default profile: KITTI 00-driven
     # ATE 2.64 -> 6.5 m with heights at 1.7 %; docs/experiments.md, session 21)
     max_odometry_scale_sigma: float = 0.2  # the measured odometry scale noise is capped here
+    loop_scale_noise: bool = True  # without heights, the odometry's scale noise is measured from the loops' cycles
+    # (PoseGraph.loop_scale_noise): a hand-held or flying monocular camera's odometry walks 6 % per submap in scale,
+    # and a 1 % sigma lets it bend the map against every loop (docs/backend.md, "pose graph")
+    loop_scale_min_cycles: int = 5  # ... once this many loops lie on chains of odometry
     shared_loops: bool = True  # the loops of one query count as one measurement (PoseGraph.loop_shares)
     max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # gnc: a loop is an inlier within this chi-square quantile
@@ -140,6 +144,7 @@ class PoseGraph:
         self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
         # group (None: all) -> (its heights when measured, height_variogram())
         self._variogram_at: dict[int | None, tuple[int, tuple[float, float] | None]] = {}
+        self._loop_noise_at: tuple[tuple | None, float | None] = (None, None)  # (edges when measured, the result)
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -215,15 +220,7 @@ class PoseGraph:
         cached = self._variogram_at.get(group)
         if cached and n < cached[0] * 1.05 + 1:
             return cached[1]
-        odo = {e.j: e for e in self.edges if e.kind == "odometry" and e.j == e.i + 1}
-        cum: dict[int, float] = {}  # chained log odometry scale along runs of non-degraded odometry edges
-        chain: dict[int, int] = {}
-        for k in sorted(self.poses):
-            e = odo.get(k)
-            if e is not None and (k - 1) in cum and not e.info.get("degraded"):
-                cum[k], chain[k] = cum[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0])), chain[k - 1]
-            else:
-                cum[k], chain[k] = 0.0, k
+        cum, chain = self._odometry_chains()
         y = {k: cum[k] + float(np.log(h)) for k, (h, _) in heights.items()}
         lags, var = [], []
         for L in range(1, c.height_lags + 1):
@@ -238,6 +235,49 @@ class PoseGraph:
             out = (float(np.sqrt(max(b, 0.0))), max(float(np.sqrt(max(a / 2, 0.0))), c.min_height_sigma))
             log.debug("scale noise from %d heights: odometry %.4f, heights %.4f", n, *out)
         self._variogram_at[group] = (n, out)
+        return out
+
+    def _odometry_chains(self) -> tuple[dict[int, float], dict[int, int]]:
+        """Per node: the chained log odometry scale along its run of non-degraded odometry edges, and the run's
+        first node."""
+        odo = {e.j: e for e in self.edges if e.kind == "odometry" and e.j == e.i + 1}
+        cum: dict[int, float] = {}
+        chain: dict[int, int] = {}
+        for k in sorted(self.poses):
+            e = odo.get(k)
+            if e is not None and (k - 1) in cum and not e.info.get("degraded"):
+                cum[k], chain[k] = cum[k - 1] + float(np.log(decompose_sim3(e.T_ij)[0])), chain[k - 1]
+            else:
+                cum[k], chain[k] = 0.0, k
+        return cum, chain
+
+    def loop_scale_noise(self) -> float | None:
+        """The odometry's scale random walk per submap (log-scale sigma) measured from the loops, or None while
+        fewer than ``loop_scale_min_cycles`` loops lie on one chain of non-degraded odometry with their match.
+
+        A loop ``m -> q`` and the odometry from ``m`` to ``q`` close a cycle whose log-scale residual ``r`` is the
+        odometry's walk over ``n = q - m`` submaps plus the loop's own error: ``E[r^2] = n sigma_o^2 + sigma_l^2``.
+        ``sigma_o^2`` is taken as the median of ``r^2 / n`` over the queries (each query's loops share its errors:
+        their median counts once) divided by 0.455, the median of a chi-square with one degree of freedom; the
+        loops' own error and a few wrong loops inflate it little. Cached until the loop edges change."""
+        loops = [e for e in self.edges if e.kind == "loop"]
+        key = (len(self.edges), len(loops), len(self.poses))
+        if self._loop_noise_at[0] == key:
+            return self._loop_noise_at[1]
+        out = None
+        if len(loops) >= self.config.loop_scale_min_cycles:
+            cum, chain = self._odometry_chains()
+            per_query: dict[int, list[float]] = {}
+            for e in loops:
+                m, q = min(e.i, e.j), max(e.i, e.j)
+                if m == q or chain.get(m) != chain.get(q):
+                    continue
+                r = float(np.log(decompose_sim3(e.T_ij)[0])) * (1 if e.i == m else -1) - (cum[q] - cum[m])
+                per_query.setdefault(q, []).append(r * r / (q - m))
+            if sum(map(len, per_query.values())) >= self.config.loop_scale_min_cycles:
+                out = float(np.sqrt(np.median([np.median(v) for v in per_query.values()]) / 0.455))
+                log.debug("odometry scale noise from %d loops: %.4f", sum(map(len, per_query.values())), out)
+        self._loop_noise_at = (key, out)
         return out
 
     def scale_noise(self) -> tuple[float, float] | None:
@@ -327,6 +367,11 @@ class PoseGraph:
         err0 = None
         iterations = 0
         scale_sigma, height_sigma = scale_model if heights else (None, None)
+        measured_by = "heights" if heights else None
+        if scale_sigma is None and self.config.loop_scale_noise:
+            walk = self.loop_scale_noise()
+            if walk is not None and walk > self.config.odometry_scale_sigma:
+                scale_sigma, measured_by = min(walk, self.config.max_odometry_scale_sigma), "loops"
         shares = self.loop_shares()
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
@@ -363,7 +408,8 @@ class PoseGraph:
                            "error_before": float(err0), "error_after": float(graph.error(result)),
                            "iterations": iterations, "seconds": time.perf_counter() - t0,
                            "global": window is None, "height_factors": len(heights),
-                           "odometry_scale_sigma": scale_sigma, "height_sigma": height_sigma}
+                           "odometry_scale_sigma": scale_sigma, "odometry_scale_measured_by": measured_by,
+                           "height_sigma": height_sigma}
         return out
 
     def _add_heights(self, graph, heights: dict[int, tuple[float, int]], groups: list[int], free_refs: bool,

@@ -75,9 +75,10 @@ class GraphConfig:
     # ATE 2.64 -> 6.5 m with heights at 1.7 %; docs/experiments.md, session 21)
     max_odometry_scale_sigma: float = 0.2  # the measured odometry scale noise is capped here
     loop_scale_noise: bool = True  # without heights, the odometry's scale noise is measured from the loops' cycles
-    # (PoseGraph.loop_scale_noise): a hand-held or flying monocular camera's odometry walks 6 % per submap in scale,
-    # and a 1 % sigma lets it bend the map against every loop (docs/backend.md, "pose graph")
-    loop_scale_min_cycles: int = 5  # ... once this many loops lie on chains of odometry
+    # (PoseGraph.loop_scale_noise) and used where at least min_scale_drift: a hand-held or flying monocular camera's
+    # odometry walks 6 % per submap in scale, and a 1 % sigma lets it bend the map against every loop (docs/backend.md,
+    # "pose graph"); below it, the loops' own scale errors are as large as what it measures
+    loop_scale_min_cycles: int = 5  # ... once the loops of this many queries lie on chains of odometry
     shared_loops: bool = True  # the loops of one query count as one measurement (PoseGraph.loop_shares)
     max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # gnc: a loop is an inlier within this chi-square quantile
@@ -253,19 +254,20 @@ class PoseGraph:
 
     def loop_scale_noise(self) -> float | None:
         """The odometry's scale random walk per submap (log-scale sigma) measured from the loops, or None while
-        fewer than ``loop_scale_min_cycles`` loops lie on one chain of non-degraded odometry with their match.
+        the loops of fewer than ``loop_scale_min_cycles`` queries lie on one chain of non-degraded odometry with
+        their match.
 
         A loop ``m -> q`` and the odometry from ``m`` to ``q`` close a cycle whose log-scale residual ``r`` is the
         odometry's walk over ``n = q - m`` submaps plus the loop's own error: ``E[r^2] = n sigma_o^2 + sigma_l^2``.
         ``sigma_o^2`` is taken as the median of ``r^2 / n`` over the queries (each query's loops share its errors:
-        their median counts once) divided by 0.455, the median of a chi-square with one degree of freedom; the
+        their median counts once) divided by 0.455 (about the median of a chi-square with one degree of freedom); the
         loops' own error and a few wrong loops inflate it little. Cached until the loop edges change."""
         loops = [e for e in self.edges if e.kind == "loop"]
         key = (len(self.edges), len(loops), len(self.poses))
         if self._loop_noise_at[0] == key:
             return self._loop_noise_at[1]
         out = None
-        if len(loops) >= self.config.loop_scale_min_cycles:
+        if len({e.j for e in loops}) >= self.config.loop_scale_min_cycles:
             cum, chain = self._odometry_chains()
             per_query: dict[int, list[float]] = {}
             for e in loops:
@@ -274,7 +276,7 @@ class PoseGraph:
                     continue
                 r = float(np.log(decompose_sim3(e.T_ij)[0])) * (1 if e.i == m else -1) - (cum[q] - cum[m])
                 per_query.setdefault(q, []).append(r * r / (q - m))
-            if sum(map(len, per_query.values())) >= self.config.loop_scale_min_cycles:
+            if len(per_query) >= self.config.loop_scale_min_cycles:
                 out = float(np.sqrt(np.median([np.median(v) for v in per_query.values()]) / 0.455))
                 log.debug("odometry scale noise from %d loops: %.4f", sum(map(len, per_query.values())), out)
         self._loop_noise_at = (key, out)
@@ -370,7 +372,7 @@ class PoseGraph:
         measured_by = "heights" if heights else None
         if scale_sigma is None and self.config.loop_scale_noise:
             walk = self.loop_scale_noise()
-            if walk is not None and walk > self.config.odometry_scale_sigma:
+            if walk is not None and walk >= max(self.config.min_scale_drift, self.config.odometry_scale_sigma):
                 scale_sigma, measured_by = min(walk, self.config.max_odometry_scale_sigma), "loops"
         shares = self.loop_shares()
         for stage in stages:

@@ -145,7 +145,7 @@ class PoseGraph:
         self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
         # group (None: all) -> (its heights when measured, height_variogram())
         self._variogram_at: dict[int | None, tuple[int, tuple[float, float] | None]] = {}
-        self._loop_noise_at: tuple[tuple | None, float | None] = (None, None)  # (edges when measured, the result)
+        self._loop_noise_at: tuple[tuple | None, float | None] = (None, None)  # (loops when measured, the result)
 
     # -- building -------------------------------------------------------------------------------
     def add_node(self, i: int, T_world_submap: np.ndarray) -> None:
@@ -263,7 +263,7 @@ class PoseGraph:
         their median counts once) divided by 0.455 (about the median of a chi-square with one degree of freedom); the
         loops' own error and a few wrong loops inflate it little. Cached until the loop edges change."""
         loops = [e for e in self.edges if e.kind == "loop"]
-        key = (len(self.edges), len(loops), len(self.poses))
+        key = tuple((e.i, e.j) for e in loops)  # (a new submap's odometry edge closes no cycle)
         if self._loop_noise_at[0] == key:
             return self._loop_noise_at[1]
         out = None

@@ -1134,14 +1134,19 @@ def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyon
     assert backend.closer.odometry_consistent(loop(np.eye(4), 1.0))  # no landmarks: as before
     backend.closer.config = dataclasses.replace(backend.closer.config, lone_needs_images=False)
     assert backend.closer.odometry_consistent(unjudged)
-    # a loop whose images confirm its pose (their own alignment is the loop's) may turn up to two sigmas
-    turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(0.5 * b.max_yaw_deg)])), np.zeros(3))
-    turn[:3, 3] = about - turn[:3, :3] @ about  # 1.5 sigma
-    assert not backend.closer.odometry_consistent(loop(turn, 1.0))
-    assert backend.closer.odometry_consistent(dataclasses.replace(loop(turn, 1.0), images_confirm=True))
-    turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(0.75 * b.max_yaw_deg)])), np.zeros(3))
-    turn[:3, 3] = about - turn[:3, :3] @ about  # 2.25 sigma
-    assert not backend.closer.odometry_consistent(dataclasses.replace(loop(turn, 1.0), images_confirm=True))
+    # a loop whose images confirm its pose (their own alignment is the loop's) may turn as far as the drift
+    # bounds allow (3 sigma), not beyond; with lone_confirmed_sigmas = 2, up to two sigmas
+    def turned(share):
+        T = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(share * b.max_yaw_deg)])), np.zeros(3))
+        T[:3, 3] = about - T[:3, :3] @ about
+        return dataclasses.replace(loop(T, 1.0), images_confirm=True)
+
+    assert not backend.closer.odometry_consistent(dataclasses.replace(turned(0.5), images_confirm=False))  # 1.5 sigma
+    assert backend.closer.odometry_consistent(turned(0.5))
+    assert backend.closer.odometry_consistent(turned(0.9))  # 2.7 sigma
+    assert not backend.closer.odometry_consistent(turned(1.05))
+    backend.closer.config = dataclasses.replace(backend.closer.config, lone_confirmed_sigmas=2.0)
+    assert backend.closer.odometry_consistent(turned(0.5)) and not backend.closer.odometry_consistent(turned(0.75))
 
 
 def test_every_part_of_the_pose_graph_has_its_own_gauge():

@@ -303,8 +303,8 @@ class LoopCloser:
             yield k, bool(agrees), dq
 
     def odometry_consistent(self, r: LoopResult) -> bool:
-        """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`; two where
-        its images confirm it, below) closes a consistent cycle with the odometry chain itself: it needs no
+        """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`; where its
+        images confirm it, ``lone_confirmed_sigmas``, below) closes a consistent cycle with the odometry chain itself: it needs no
         partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop
         accepted alone on the bench worlds, realistic and default profiles, 1,000 submaps, sat at 0.25-0.27
         against the threshold 0.25; a loop registered from images is exempt: its "structure overlap" is the
@@ -314,8 +314,9 @@ class LoopCloser:
         (:meth:`contradicted`). With ``lone_needs_images``, a loop registered from points with landmarks must
         also be one its images could judge (they refuse what they judge and disagree with at registration). A
         loop whose images confirm its pose (``r.images_confirm``: the landmarks' own alignment, from enough
-        agreeing pairs, is the pose the points verified) may correct up to ``lone_confirmed_sigmas`` sigmas:
-        under realistic drift a right revisit often needs more than one."""
+        agreeing pairs, is the pose the points verified) may correct up to ``lone_confirmed_sigmas`` sigmas
+        (3 by default: as far as the bounds registration searched): under realistic drift a right revisit often
+        needs more than one."""
         if not self.map.same_segment(r.match, r.query):
             return False  # a loop that would place a recording needs a cycle-consistent partner
         if r.guess != "images" and r.structure_overlap < self.config.lone_min_structure_overlap:

@@ -135,8 +135,8 @@ def test_the_odometry_scale_walk_is_measured_from_the_loops_where_no_heights_mea
     as before."""
     def solve(step: float, measure: bool, gate: float = 0.02) -> tuple[PoseGraph, list]:
         g, gt = _scale_drift_chain(np.random.default_rng(3), n=16, step=step)
-        g.config = GraphConfig(robust_kernel="none", loop_scale_noise=measure, min_scale_drift=gate)  # (the kernel:
-        # other tests)
+        # (the kernel: other tests)
+        g.config = GraphConfig(robust_kernel="none", loop_scale_noise=measure, min_scale_drift=gate)
         for q in range(4, len(gt)):
             for m in (q - 4, q - 3):  # revisits 3-4 submaps back, 1 % error in scale and 0.1 tile in position
                 loop = sim3_inverse(gt[m]) @ gt[q] @ make_sim3(float(np.exp(rng.normal(0, 0.01))), np.eye(3),

@@ -304,8 +304,8 @@ class LoopCloser:
 
     def odometry_consistent(self, r: LoopResult) -> bool:
         """A loop whose correction is within one sigma of the drift model (a third of :meth:`bounds`; where its
-        images confirm it, ``lone_confirmed_sigmas``, below) closes a consistent cycle with the odometry chain itself: it needs no
-        partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop
+        images confirm it, ``lone_confirmed_sigmas``, below) closes a consistent cycle with the odometry chain
+        itself: it needs no partner loop, if its structure overlap is at least ``lone_min_structure_overlap`` (every wrong loop
         accepted alone on the bench worlds, realistic and default profiles, 1,000 submaps, sat at 0.25-0.27
         against the threshold 0.25; a loop registered from images is exempt: its "structure overlap" is the
         share of keyframes registered). Its scale change is not tested when the cameras' heights measured it

@@ -1036,9 +1036,18 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     assert closer.consistent(loop(10, 3, sim3_inverse(P[3]) @ C @ P[10])) == []
     closer.loops = [wrong]
     assert closer.consistent(true[1]) == []
-    far = loop(13, 9, sim3_inverse(P[9]) @ C @ P[13])  # too far from the others to be compared
+    # too far from the others to be compared
+    window = BackendConfig().consistency_submaps
+    far = loop(13, 4 + window, sim3_inverse(P[4 + window]) @ C @ P[13])
     closer.loops = list(true)
     assert closer.consistent(far) == []
+    # the cycle holds two loops' own registration errors besides the odometry's walk: a right loop of a revisit
+    # seen the other way, turned 5.5 deg off its partner about its own query (one hop: the walk alone allows 4.5),
+    # agrees; one turned 8 deg off does not
+    closer.loops = [true[0]]
+    for deg, agrees in ((5.5, True), (8.0, False)):
+        turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(deg)])), np.zeros(3))
+        assert bool(closer.consistent(loop(11, 2, sim3_inverse(P[2]) @ C @ P[11] @ turn))) == agrees, deg
 
 
 def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_degraded(tmp_path):

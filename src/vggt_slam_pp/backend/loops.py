@@ -257,8 +257,10 @@ class LoopCloser:
         cycle with ``r`` (pairwise consistency, as in PCM): loops (q, m) and (q', m') from two distinct queries
         (1 <= |q - q'|, and |m - m'|, at most ``consistency_submaps``) predict each other through the short
         odometry chains q -> q' and m -> m' (current estimate): ``E = (O_m Z') ^ -1 Z O_q`` must be the
-        identity within what odometry drifts over those chains (3 sigma of the registration's drift model in
-        scale and angle; ``consistency_trans_tiles`` plus ``translation_drift`` of the two chains' length).
+        identity within what odometry drifts over those chains and what the two loops' own registrations err
+        (3 sigma in scale and angle, of the registration's drift model over the chains' submaps together with
+        the pose graph's loop sigmas, ``GraphConfig.loop_scale_sigma`` / ``loop_rot_sigma``, twice;
+        ``consistency_trans_tiles`` plus ``translation_drift`` of the two chains' length in translation).
         A wrong loop is a random alignment: it rarely agrees with another. Loops of the same query onto
         neighbouring matches do not count: a query placed at a look-alike place registers onto every
         submap that saw that place, consistently (1,000-submap bench, seed 1: one query onto submaps
@@ -277,7 +279,7 @@ class LoopCloser:
         """``(index, consistent, |q - q'|)`` for every verified loop, accepted or pending, whose query and match
         are within ``consistency_submaps`` of ``r``'s (not ``r``'s own pair), in the same recordings:
         whether it closes a consistent cycle with ``r`` (:meth:`consistent`)."""
-        c, reg, m = self.config, self.config.registration, self.map
+        c, reg, g_cfg, m = self.config, self.config.registration, self.config.graph, self.map
         P = m.graph.poses
         for k, o in enumerate(self.loops):
             if not (o.accepted or k in self._pending) or o.T_match_query is None:
@@ -291,15 +293,20 @@ class LoopCloser:
             O_q = sim3_inverse(P[r.query]) @ P[o.query]
             E = sim3_inverse(O_m @ o.T_match_query) @ r.T_match_query @ O_q
             s, R, t = decompose_sim3(E)
-            walk = 3.0 * np.sqrt(max(dq + dm, 1))
+            # 3 sigma of what the cycle adds up: the odometry's walk over both chains and the two loops' own errors
+            # (the pose graph's loop sigmas: reverse revisits register a few degrees off, and two right loops of
+            # one revisit then disagreed by more than the walk alone allows)
+            hops = max(dq + dm, 1)
+            tol_s = 3.0 * np.hypot(np.sqrt(hops) * reg.scale_sigma_per_submap, np.sqrt(2) * g_cfg.loop_scale_sigma)
+            tol_deg = 3.0 * np.hypot(np.sqrt(hops) * reg.yaw_sigma_per_submap_deg,
+                                     np.sqrt(2) * np.degrees(g_cfg.loop_rot_sigma))
             s_q2, _, _ = decompose_sim3(P[o.query])  # E maps the other query's frame onto itself: its units
             chains = m.path(r.query, o.query) + m.path(r.match, o.match)
             tol_t = (c.consistency_trans_tiles * self.tile_size + reg.translation_drift * chains) / float(s_q2)
             ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
             log.debug("cycle %d->%d / %d->%d: scale %.3f, angle %.2f deg, translation %.2f (tolerance %.2f)",
                       r.query, r.match, o.query, o.match, s, ang, np.linalg.norm(t), tol_t)
-            agrees = (abs(np.log(s)) <= walk * reg.scale_sigma_per_submap and ang <= walk * reg.yaw_sigma_per_submap_deg
-                      and np.linalg.norm(t) <= tol_t)
+            agrees = (abs(np.log(s)) <= tol_s and ang <= tol_deg and np.linalg.norm(t) <= tol_t)
             yield k, bool(agrees), dq
 
     def odometry_consistent(self, r: LoopResult) -> bool:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -1049,69 +1048,6 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
     for deg, agrees in ((5.5, True), (8.0, False)):
         turn = make_sim3(1.0, so3_exp(np.array([0, 0, np.radians(deg)])), np.zeros(3))
         assert bool(closer.consistent(loop(11, 2, sim3_inverse(P[2]) @ C @ P[11] @ turn))) == agrees, deg
-
-
-def test_a_waiting_loop_has_its_partner_sought_among_pairs_never_tried(tmp_path):
-    """A revisit's first verified loop, or one at the end of a recording, has no later query to be its partner:
-    its query's predecessors are registered against its match's neighbours, the pairs its correction brings
-    nearest first and none tried before; a right one found so is its partner, and both enter the graph."""
-    from types import SimpleNamespace
-
-    from vggt_slam_pp.backend.backend import Backend, BackendConfig
-    from vggt_slam_pp.backend.registration import LoopResult
-    from vggt_slam_pp.frontend.types import OdometryEdge
-
-    cloud = np.random.default_rng(0).normal(0.0, 1.0, (50, 3))  # each submap's points about its origin
-    step = make_sim3(1.0, np.eye(3), np.array([5.0, 0.0, 0.0]))
-    C = make_sim3(1.0, so3_exp(np.array([0.0, 0.0, np.pi])), np.array([75.0, 0.0, 0.0]))  # submap q lies on 15 - q
-
-    def elsewhere(q):  # look-alike places: each query's its own
-        return make_sim3(1.0, so3_exp(np.array([0.0, 0.0, 0.4 * q])), np.array([60.0, 3.0 * q, 0.0]))
-
-    def revisit(folder, config=None):
-        """14 submaps along x; the drive comes back the other way from submap 8 on."""
-        backend = Backend(config or BackendConfig(), SubmapStore(tmp_path / folder))
-        backend.map.gallery.grid = SimpleNamespace(tile_size=2.0)
-        for i in range(14):
-            backend.map.add_submap(i, None if i == 0 else OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "points"), cloud)
-            backend.map.store.put(i, cloud)
-        return backend
-
-    def loop(backend, q, j, correction=C):
-        P = backend.map.graph.poses
-        return LoopResult(q, j, True, "accepted", sim3_inverse(P[j]) @ correction @ P[q], correction, 0.5, 0.5, 0.1, 0,
-                          0.0, "search_1")
-
-    backend = revisit("a")
-    closer = backend.closer
-    # the pairs: queries 9-11 (within consistency_submaps of 12) against 0-6, nearest after the correction first
-    assert closer.partner_probes([loop(backend, 12, 3)]) == [(11, 4), (10, 5)]
-    closer._tried.add((11, 4))
-    assert closer.partner_probes([loop(backend, 12, 3)]) == [(10, 5), (9, 6)]
-    assert revisit("b", dataclasses.replace(BackendConfig(), partner_probes=0)).closer.partner_probes(
-        [loop(backend, 12, 3)]) == []
-
-    # query 12's candidate 3 verifies; its correction (a half turn) is far beyond what one loop is trusted with
-    # alone, so it waits; the probe 11 -> 4 verifies the same correction: both become edges, and the search stops
-    for folder, probe_correction, edges in (("c", lambda q: C, 2), ("d", elsewhere, 0)):
-        backend = revisit(folder)
-        registered = []
-
-        def register(q, j, *args, backend=backend, probe_correction=probe_correction, registered=registered):
-            registered.append((q, j))
-            return loop(backend, q, j, C if q == 12 else probe_correction(q))
-
-        backend.closer.candidates = lambda sid, res: [(3, 0.5, 0.1, "retrieval")]
-        backend.closer._register = register
-        accepted = backend.closer.verify(12, SimpleNamespace(chip_descriptors=None, chip_keys=None), cloud)
-        assert sum(e.kind == "loop" for e in backend.map.graph.edges) == len(accepted) == edges
-        if edges:
-            assert registered == [(12, 3), (11, 4)]
-            assert {(r.query, r.match, r.source) for r in accepted} == {(12, 3, "retrieval"), (11, 4, "partner")}
-        else:  # a probe that lands elsewhere (a look-alike) is no partner: the loop keeps waiting
-            assert registered == [(12, 3), (11, 4), (10, 5)]
-            assert [r.reason for r in backend.closer.loops if r.query == 12] == ["verified, but no cycle-consistent "
-                                                                                  "second loop (yet)"]
 
 
 def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_degraded(tmp_path):

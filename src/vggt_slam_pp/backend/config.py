@@ -58,8 +58,6 @@ class BackendConfig:
     loop_consistency: bool = True  # a verified loop enters the graph only with a cycle-consistent second one
     consistency_submaps: int = 3  # partners: queries and matches at most this many submaps apart
     consistency_trans_tiles: float = 1.0  # translation tolerance of the cycle, in tiles
-    partner_probes: int = 2  # a loop left waiting for a partner has this many pairs of its query's predecessors
-    # and its match's neighbours registered, never tried before (LoopCloser.partner_probes); 0: none
     lone_min_structure_overlap: float = 0.3  # a loop accepted without a partner needs this structure overlap
     # (verification asks 0.25 of every loop; wrong ones accepted alone sat at 0.25-0.27: docs/backend.md)
     lone_needs_no_contradiction: bool = True  # ... and no verified loop between the same places (queries and

@@ -18,8 +18,7 @@ which verified registrations become edges of the pose graph.
    drift model and no verified loop between the same places disagrees with it
    (:meth:`LoopCloser.odometry_consistent`, :meth:`LoopCloser.contradicted`); a loop that would place a recording in the map
    needs ``placement_votes`` agreeing loops (:meth:`LoopCloser.placement`). Otherwise it waits for a
-   partner ("pending"), and pairs of its query's predecessors and its match's neighbours never tried are
-   registered to find one (:meth:`LoopCloser.partner_probes`). Rejected candidates are kept with their reason.
+   partner ("pending"). Rejected candidates are kept with their reason.
 """
 
 from __future__ import annotations
@@ -44,7 +43,7 @@ from vggt_slam_pp.backend.registration import (
     mutual_matches,
     register_loop,
 )
-from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, transform_points
+from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +60,6 @@ class LoopCloser:
         self.loops: list[LoopResult] = []
         self._pending: list[int] = []  # indices in loops: verified, waiting for a consistent partner
         self._queries = 0  # queries with earlier submaps to compare with (fault injection counts them)
-        self._tried: set[tuple[int, int]] = set()  # (query, match) pairs registered
 
     @property
     def tile_size(self) -> float:
@@ -138,10 +136,8 @@ class LoopCloser:
         m, g = self.map, self.map.graph
         accepted: list[LoopResult] = []
         by_images = 0
-        waiting = len(self._pending)
         for match, score, margin, source in self.candidates(sid, res):
             t0 = time.thread_time()
-            self._tried.add((sid, match))
             if self.config.images.enabled and image_loops.available(m.store, sid, match):
                 # a sparse backbone's submaps: their images verify a loop, their few shared points cannot
                 if by_images >= self.config.images.max_candidates:  # each costs seconds: kept with its reason
@@ -154,93 +150,43 @@ class LoopCloser:
                     sid, match, m.store, g.poses[sid], g.poses[match], self.bounds(match, sid), self.config.images,
                     score, slack=self.config.registration.icp_radius_tiles * self.tile_size)
             else:
-                r = self._register(sid, match, score, margin, res.chip_descriptors, res.chip_keys, points, colors)
-            accepted += self._decide(dataclasses.replace(r, source=source, seconds=time.thread_time() - t0))
-        for k in [k for k in self._pending[waiting:] if self.loops[k].query == sid]:
-            for q, match in self.partner_probes([self.loops[k]]):
-                if k not in self._pending:
-                    break  # it found its partner
-                t0 = time.thread_time()
-                self._tried.add((q, match))
-                n = self.config.registration_max_points
-                colours = m.store.get_colors(q) if colors is not None else None
-                r = self._register(q, match, 0.0, np.inf, None, None, subsample(m.store.get(q), n),
-                                   subsample(colours, n) if colours is not None else None)
-                accepted += self._decide(dataclasses.replace(r, source="partner", seconds=time.thread_time() - t0))
-        return accepted
-
-    def _decide(self, r: LoopResult) -> list[LoopResult]:
-        """Keep registration result ``r`` and decide on it (module docstring, 3.): the loops that become graph
-        edges now (``r`` and pending ones it is the partner of)."""
-        m = self.map
-        log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
-                 r.query, r.match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
-        if not r.accepted:
-            self.loops.append(r)
-            return []
-        if log.isEnabledFor(logging.DEBUG):
-            log.debug("verified %d->%d: correction |log s| %.3f, %.1f deg, moves it %.2f", r.query, r.match,
-                      *correction_size(r.correction, m.centroid_world(r.query)))
-        if not m.is_placed(r.query) and m.is_placed(r.match):
-            partners = self.placement(r)  # a loop that would place this recording in the map
-            if not partners:
+                r = self._register(sid, match, score, margin, res, points, colors)
+            r = dataclasses.replace(r, source=source, seconds=time.thread_time() - t0)
+            log.info("loop candidate %d->%d: %s (overlap %.2f, structure %.2f, agreement %.2f, guess %s)",
+                     sid, match, r.reason, r.overlap, r.structure_overlap, r.agreement, r.guess)
+            if not r.accepted:
+                self.loops.append(r)
+                continue
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("verified %d->%d: correction |log s| %.3f, %.1f deg, moves it %.2f", sid, match,
+                          *correction_size(r.correction, m.centroid_world(sid)))
+            if not m.is_placed(sid) and m.is_placed(match):
+                partners = self.placement(r)  # a loop that would place this recording in the map
+                if not partners:
+                    self._wait(r)
+                    continue
+            else:
+                partners = self.consistent(r)
+            if self.config.loop_consistency and not partners and not self.odometry_consistent(r):
                 self._wait(r)
-                return []
-        else:
-            partners = self.consistent(r)
-        if self.config.loop_consistency and not partners and not self.odometry_consistent(r):
-            self._wait(r)
-            return []
-        accepted = []
-        for k in partners:  # pending partners join now
-            if k in self._pending:
-                self._pending.remove(k)
-                self.loops[k] = dataclasses.replace(self.loops[k], accepted=True, reason="accepted")
-                accepted.append(self._add(self.loops[k]))
-        self.loops.append(r)
-        accepted.append(self._add(r))
+                continue
+            for k in partners:  # pending partners join now
+                if k in self._pending:
+                    self._pending.remove(k)
+                    self.loops[k] = dataclasses.replace(self.loops[k], accepted=True, reason="accepted")
+                    accepted.append(self._add(self.loops[k]))
+            self.loops.append(r)
+            accepted.append(self._add(r))
         return accepted
 
-    def partner_probes(self, pending: list[LoopResult]) -> list[tuple[int, int]]:
-        """(query, match) pairs registered to find the partner of each loop in ``pending`` (verified, waiting):
-        up to ``partner_probes`` pairs of its query's predecessors within ``consistency_submaps`` (queried before
-        the loop was known) and the submaps within as many of its match, never tried before, nearest first once
-        the loop's correction moves them. The pending loop only chooses the pairs: each is registered as any
-        candidate is, from its own points and the estimate, so a partner it finds is independent evidence. A
-        revisit's first verified loop, or one at the end of a recording, has no later query to be its partner;
-        the earlier queries were registered against what the drifted estimate and retrieval proposed, often not
-        these."""
-        c, m = self.config, self.map
-        if c.partner_probes <= 0 or not c.loop_consistency:
-            return []
-        recent = m.gallery.config.index.exclude_recent
-        out: list[tuple[int, int]] = []
-        for r in pending:
-            if r.correction is None or not (m.is_placed(r.query) and m.same_segment(r.query, r.match)):
-                continue
-            pairs = [(q, j) for q in range(r.query - c.consistency_submaps, r.query)
-                     for j in range(r.match - c.consistency_submaps, r.match + c.consistency_submaps + 1)
-                     if (q, j) not in self._tried and (q, j) not in out and j < q - recent
-                     and m.has_points(q) and m.has_points(j) and m.same_segment(q, r.query)
-                     and m.same_segment(j, r.match) and (m.index_new or m.in_gallery(j))]
-            if not pairs:
-                continue
-            moved = transform_points(r.correction, m.centroids_world([q for q, _ in pairs]))
-            d = np.linalg.norm(moved - m.centroids_world([j for _, j in pairs]), axis=1)
-            out += [pairs[k] for k in np.argsort(d, kind="stable")[: c.partner_probes]]
-        return out
-
-    def _register(self, sid: int, match: int, score: float, margin: float, chip_descriptors: np.ndarray | None,
-                  chip_keys: np.ndarray | None, points: np.ndarray, colors: np.ndarray | None) -> LoopResult:
-        """Register candidate ``sid`` -> ``match`` from the two submaps' points (registration.py); the query's DEM
-        chips (its :class:`StageResult`'s, where it has just queried) add the planar guess."""
+    def _register(self, sid: int, match: int, score: float, margin: float, res: StageResult, points: np.ndarray,
+                  colors: np.ndarray | None) -> LoopResult:
+        """Register candidate ``sid`` -> ``match`` from the two submaps' points (registration.py)."""
         m, g, grid = self.map, self.map.graph, self.map.gallery.grid
-        chip_uv = tile_uv = None
-        if chip_descriptors is not None:
-            keys, desc = m.gallery.tiles_of(match)
-            ia, ib = mutual_matches(chip_descriptors, desc)
-            chip_uv = m.gallery.tile_centers_uv(chip_keys[ia])
-            tile_uv = m.gallery.tile_centers_uv(keys[ib])
+        keys, desc = m.gallery.tiles_of(match)
+        ia, ib = mutual_matches(res.chip_descriptors, desc)
+        chip_uv = m.gallery.tile_centers_uv(res.chip_keys[ia])
+        tile_uv = m.gallery.tile_centers_uv(keys[ib])
         pm = subsample(m.store.get(match), self.config.registration_max_points)
         h_q, h_m, measured = m.height_cue(sid, match)
         cm = m.store.get_colors(match) if colors is not None else None

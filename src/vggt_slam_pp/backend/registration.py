@@ -170,8 +170,7 @@ class LoopResult:
     # agreement 1 - the relative camera-centre residual
     constraint_ratio: float = 0.0  # weakest / strongest in-plane translation information of the ICP
     information: np.ndarray | None = None  # 7x7, in the pose graph's tangent of T_match_query
-    source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity", "injected" or "partner"
-    # (LoopCloser.partner_probes)
+    source: str = "retrieval"  # where the candidate came from: "retrieval", "proximity" or "injected"
     agreement: float = 0.0  # free-space agreement of the two submaps at the result
     agreement_cells: int = 0  # structure cells it was measured on
     scale_cue: float = 0.0  # the scale the two submaps' camera heights gave, once measured to hold (0: none or a loose

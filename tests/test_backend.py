@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -1719,6 +1720,17 @@ def test_a_lone_loop_contradicted_by_a_verified_loop_between_the_same_places_wai
     off = closer_with(BackendConfig(lone_needs_no_contradiction=False))
     off._wait(loop(11, 2, make_sim3(1.0, so3_exp(np.array([0, 0, 0.4])), np.array([6.0, -4.0, 0.0]))))
     assert off.odometry_consistent(loop(12, 2, np.eye(4)))
+    # a loop its images confirm (from a guess of its own) is held back only by an accepted loop or a confirmed one
+    confirmed = dataclasses.replace(lone, images_confirm=True)
+    closer.loops, closer._pending = [], []
+    closer._wait(look_alike)
+    assert closer.contradicted(confirmed) == [] and closer.odometry_consistent(confirmed)
+    assert closer.contradicted(dataclasses.replace(confirmed, guess="landmarks")) == [0]  # not independent
+    closer.loops[0] = dataclasses.replace(closer.loops[0], images_confirm=True)
+    assert closer.contradicted(confirmed) == [0] and not closer.odometry_consistent(confirmed)
+    closer.loops[0] = dataclasses.replace(look_alike, accepted=True)
+    closer._pending = []
+    assert closer.contradicted(confirmed) == [0]
 
 
 def _rendered_landmarks(scene, renderer, frames, T_world_submap):

@@ -36,6 +36,8 @@ from vggt_slam_pp.frontend.types import Landmarks
 from vggt_slam_pp.geometry.alignment import umeyama
 from vggt_slam_pp.geometry.lie import decompose_sim3, sim3_inverse, transform_points
 
+LANDMARKS_GUESS = "landmarks"  # the name of the initial guess taken from the landmarks' own alignment
+
 
 @dataclass(frozen=True)
 class AppearanceConfig:
@@ -74,7 +76,7 @@ class ImageCheck:
     def guesses(self) -> dict[str, np.ndarray]:
         """``{"landmarks": T_match_query}`` (:func:`landmark_alignment`), or {} when too few agree."""
         found = self.alignment
-        return {"landmarks": found.T_match_query} if found is not None else {}
+        return {LANDMARKS_GUESS: found.T_match_query} if found is not None else {}
 
     @cached_property
     def alignment(self) -> LandmarkAlignment | None:

@@ -30,7 +30,7 @@ import time
 import numpy as np
 
 from vggt_slam_pp.backend import image_loops
-from vggt_slam_pp.backend.appearance import ImageCheck
+from vggt_slam_pp.backend.appearance import LANDMARKS_GUESS, ImageCheck
 from vggt_slam_pp.backend.config import BackendConfig
 from vggt_slam_pp.backend.graph import Edge
 from vggt_slam_pp.backend.map import Map, subsample
@@ -281,7 +281,7 @@ class LoopCloser:
         refined from the landmarks' guess is not independently confirmed: one such, on realistic KITTI 00, was
         17 m off along the street."""
         return [k for k, agrees, _ in self._cycles(r) if not agrees
-                and (not (r.images_confirm and r.guess != "landmarks") or self.loops[k].accepted
+                and (not (r.images_confirm and r.guess != LANDMARKS_GUESS) or self.loops[k].accepted
                      or self.loops[k].images_confirm)]
 
     def _cycles(self, r: LoopResult):

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vggt_slam_pp.backend.appearance import ImageCheck
+from vggt_slam_pp.backend.appearance import LANDMARKS_GUESS, ImageCheck
 from vggt_slam_pp.backend.search import (
     SearchConfig,
     colour_match,
@@ -676,7 +676,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                 d_s = struct_tree.query(transform_points(T, start[own_structure]), distance_upper_bound=r_in)[0]
                 return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
 
-            la = images.alignment if images is not None and name == "landmarks" else None
+            la = images.alignment if images is not None and name == LANDMARKS_GUESS else None
             fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
                                      check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None,
                                      anchors=None if la is None else (transform_points(G, la.query_xyz), la.match_xyz))

@@ -1679,7 +1679,8 @@ def test_proximity_reaches_as_far_as_the_estimate_can_have_drifted_between_the_t
 def test_a_lone_loop_contradicted_by_a_verified_loop_between_the_same_places_waits_for_a_partner(tmp_path):
     """On a street of look-alikes, consecutive queries verify onto the same place at different turns: a loop
     that a verified loop between the same places (either one pending) disagrees with is not taken alone, as
-    the lone test alone would; one that agrees, or a disagreeing loop between other places, does not stop it."""
+    the lone test alone would; one that agrees, or a disagreeing loop between other places, does not stop it. A loop
+    its images confirm independently is held back only by an accepted loop or by one its images confirm too."""
     from types import SimpleNamespace
 
     from vggt_slam_pp.backend.backend import Backend, BackendConfig

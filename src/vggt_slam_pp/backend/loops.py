@@ -280,9 +280,9 @@ class LoopCloser:
         confirmed by 342 landmarks, was held back by a wrong neighbour that its images could not judge). A loop
         refined from the landmarks' guess is not independently confirmed: one such, on realistic KITTI 00, was
         17 m off along the street."""
+        independent = r.images_confirm and r.guess != LANDMARKS_GUESS
         return [k for k, agrees, _ in self._cycles(r) if not agrees
-                and (not (r.images_confirm and r.guess != LANDMARKS_GUESS) or self.loops[k].accepted
-                     or self.loops[k].images_confirm)]
+                and (not independent or self.loops[k].accepted or self.loops[k].images_confirm)]
 
     def _cycles(self, r: LoopResult):
         """``(index, consistent, |q - q'|)`` for every verified loop, accepted or pending, whose query and match

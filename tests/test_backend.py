@@ -1975,3 +1975,19 @@ def test_heights_give_no_scale_when_the_cameras_climb_with_them(tmp_path, rng):
     drone, kept = recording(1.5 + 0.5 * np.sin(np.arange(n)), np.exp(rng.normal(0.0, 0.01, n)))
     assert kept[:4] == [True] * 4 and not any(kept[6:])  # decided once enough pairs show the climb
     assert drone.flying == {0} and not drone.graph.heights and drone.height_near(3) is None
+    # a car whose first pairs happen to follow its altitude (its scale drift and a slope agree for a while) is
+    # taken for a climbing camera at first, and gets every height back once the road and its heights part
+    m = 20
+    climb = np.exp(0.1 * np.arange(m))  # its first 7 heights' changes (odometry units) follow the altitude
+    alt = np.r_[1.6 * climb[:7], 1.6 * climb[6] + np.cumsum(rng.normal(0.0, 0.5, m - 7))]
+    scale = np.r_[climb[:7], np.full(m - 7, climb[6])]  # then its scale no longer drifts with it
+    car = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "late"), Gallery(HogEncoder(), CovisibilityConfig()))
+    kept = []
+    for i in range(m):
+        car.add_submap(i, OdometryEdge(i - 1, i, make_sim3(1.0, np.eye(3), np.array([5.0, 0.0, 0.0])), 0.01, 1.0, 100,
+                                       "points") if i else None, np.zeros((0, 3)))
+        kept.append(car.set_height(i, 1.6 * scale[i] / decompose_sim3(car.odometry_poses[i])[0], altitude=alt[i]))
+        if i == 6:
+            assert car.flying == {0} and not car.graph.heights and car.height_near(6) is None
+    assert kept[-1] and not car.flying and sorted(car.graph.heights) == list(range(m))
+    assert car.height(3) == pytest.approx(1.6 * scale[3])  # those set aside while it seemed to climb, back

@@ -234,7 +234,7 @@ class Backend:
         m, c = self.map, self.config.registration
         grid = m.gallery.grid
         if grid is None or camera_centers is None or len(points) < 10 or sid in m.graph.heights or not (
-                self.config.graph.height_factors or c.height_cue) or m.segment[sid] in m.flying:
+                self.config.graph.height_factors or c.height_cue):
             return
         s, R, _ = decompose_sim3(m.graph.poses[sid])
         h = camera_height(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,

@@ -58,7 +58,12 @@ class GraphConfig:
     odometry_relative_sigma_floor: float = 0.002  # an edge that measures its own relative uncertainty (COLMAP's
     # joint link: the cameras' placement residual over their spread) has that as its rotation (rad) and log-scale
     # sigma, at least this much
-    degraded_inflation: float = 100.0
+    degraded_inflation: float = 100.0  # a degraded (extrapolated) odometry edge's scale sigma times this: its scale is
+    # a guess (the two submaps' median depths)
+    degraded_motion_inflation: float = 10.0  # ... and its rotation and translation sigmas times this: they come from
+    # the previous submap's cameras or their motion (extrapolated edges of the realistic profile, 94 in 80 runs: 0.39
+    # deg and 1.4 % of the step off the truth (median), as close as linked edges; at 100x too, a scale set by heights
+    # or loops turned the rest of the run about them: docs/experiments.md, session 54)
     loop_rot_sigma: float = 0.02
     loop_scale_sigma: float = 0.02
     loop_trans_sigma_tiles: float = 0.02  # floor of a loop's translation sigma, in tiles (ICP along a
@@ -172,7 +177,9 @@ class PoseGraph:
         if np.isfinite(relative):
             rot = scale = max(float(relative), c.odometry_relative_sigma_floor)
         sig = np.r_[[rot] * 3, [trans / max(float(s), 1e-9)] * 3, scale]
-        return sig * (c.degraded_inflation if degraded else 1.0)
+        if degraded:
+            sig = sig * np.r_[[c.degraded_motion_inflation] * 6, c.degraded_inflation]
+        return sig
 
     def add_height(self, i: int, height: float, group: int) -> None:
         """Node ``i``'s cameras stand ``height`` (its own units) above its ground; ``group``: the recording

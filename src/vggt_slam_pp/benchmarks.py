@@ -368,7 +368,9 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
             "loops_verified": int(sum(r["loops_verified"] for r in done)),
             "verified_off_truth": int(sum(len(r["verified_off_truth"]) for r in done)),
             "min_fps_ratio": float(min(r["fps_ratio"] for r in done)) if done else None,
-            "targets": {"mean_ate_reduction": 0.5, "false_loops": 0, "min_fps_ratio": 0.9}}
+            # issue 18: 60 % under realistic drift, 50 % on the default profile
+            "targets": {"mean_ate_reduction": 0.6 if noise == "realistic" else 0.5, "false_loops": 0,
+                        "min_fps_ratio": 0.9}}
 
 
 # revisit scenarios a per-submap SfM backbone can follow: the block driven round more than once in the same

@@ -269,6 +269,29 @@ def _finish(graph: PoseGraph, folder):
     return backend.finish()
 
 
+def test_the_end_solves_globally_when_heights_moved_submaps_and_no_longer_weigh(tmp_path):
+    """Heights weigh in windowed solves while their gate is open: each new submap is solved alone against its
+    height, the earlier ones stay where odometry put them. When the gate has closed again by the end (realistic
+    KITTI 00-driven seed 18: the odometry's scale walk read 0.09-0.12 at 17-21 heights, 0.019 at 33) and no loop
+    was accepted, the run must not end with that step in scale: the end solves globally under today's decision."""
+    g = PoseGraph(GraphConfig())
+    g.scale_noise = lambda: (0.05, 0.01)  # the gate open: heights weigh
+    step = make_sim3(1.05, np.eye(3), np.array([5.0, 0.0, 0.0]))  # odometry grows 5 % in scale per submap
+    g.add_node(0, np.eye(4))
+    for i in range(1, 12):  # submaps arrive one by one, each placed by odometry on its predecessor
+        g.add_node(i, g.poses[i - 1] @ step)
+        g.add_edge(Edge(i - 1, i, step, g.odometry_sigmas(step, 0.01), "odometry"))
+        if i >= 6:  # a steady camera: 1.6 in every submap's units at the true, constant scale
+            g.add_height(i, 1.6, group=0)
+            g.optimize({i})
+    s = [float(decompose_sim3(g.poses[i])[0]) for i in range(12)]
+    assert s[11] / s[6] < 1.02 < 1.2 < s[6] / s[1] and g.heights_weighed  # the heights held the new submaps alone
+    g.scale_noise = lambda: None  # the gate closed again
+    _finish(g, tmp_path / "s")
+    s = [float(decompose_sim3(g.poses[i])[0]) for i in range(12)]
+    assert all(np.isclose(s[i + 1] / s[i], 1.05, atol=1e-3) for i in range(11))  # the odometry again, no step
+
+
 def test_the_final_solve_keeps_true_loops_of_a_large_drift_that_cauchy_would_prune(tmp_path):
     """The loops are Cauchy-weighted; at the end, a revisit whose drift is larger than the odometry sigmas say
     sits in Cauchy's flat tail and its true loops were pruned (bench loops, realistic profile, KITTI 00: a

@@ -338,8 +338,8 @@ class Backend:
                             max(poses) if poses else -1, rss_mb())
 
     def finish(self) -> BackendResult:
-        """The deferred queries, then the final global optimisation (when there is any loop), pruning of
-        the loops it switched off, and the result."""
+        """The deferred queries, then the final global optimisation (when there is any loop, or heights weigh or
+        have weighed in a solve), pruning of the loops it switched off, and the result."""
         while self._held:  # a run shorter than BackendConfig.grid_submaps: the grid from what there is
             self._fit_grid()
         while self._deferred:
@@ -347,7 +347,12 @@ class Backend:
         graph = self.map.graph
         kernel = graph.config.robust_kernel
         loops = any(e.kind == "loop" for e in graph.edges)
-        if (graph.config.height_factors and graph.heights and graph.scale_noise() is not None) or loops:
+        # also when heights moved submaps earlier but no longer weigh (their gate closed again, or the recording was
+        # taken for a climbing camera): those windowed solves left each new submap at its height and the earlier ones
+        # where they were, a step in scale that only a global solve under today's decision removes (realistic KITTI
+        # 00-driven seed 18: -55 % without one)
+        if (graph.config.height_factors and graph.heights and graph.scale_noise() is not None) or loops or (
+                graph.heights_weighed):
             # no query follows: the layers are not described again
             self._optimize(None, refresh=False)
             final = graph.config.final_kernel

@@ -148,6 +148,7 @@ class PoseGraph:
         self.anchors: set[int] = set()
         self.heights: dict[int, tuple[float, int]] = {}  # node -> (its cameras' height in its units, group)
         self.height_refs: dict[int, float] = {}  # group -> H, its cameras' height in the world's units
+        self.heights_weighed = False  # a solve has weighed height factors (Backend.finish then solves globally)
         # group (None: all) -> (its heights when measured, height_variogram())
         self._variogram_at: dict[int | None, tuple[int, tuple[float, float] | None]] = {}
         self._loop_noise_at: tuple[tuple | None, float | None] = (None, None)  # (loops when measured, the result)
@@ -370,6 +371,7 @@ class PoseGraph:
             values.insert(_key(i), to_gtsam(self.poses[i]))
         scale_model = self.scale_noise() if self.config.height_factors and self.heights else None
         heights = {i: self.heights[i] for i in sorted(free & set(self.heights))} if scale_model is not None else {}
+        self.heights_weighed = self.heights_weighed or bool(heights)
         groups = sorted({g for _, g in heights.values()})
         for g in groups:
             values.insert(_height_key(g), gtsam.Similarity3(gtsam.Rot3(), np.zeros(3), self.height_refs[g]))

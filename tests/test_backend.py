@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from vggt_slam_pp.backend.appearance import LANDMARKS_GUESS
 from vggt_slam_pp.backend.graph import Edge, GraphConfig, PoseGraph, from_gtsam, to_gtsam
 from vggt_slam_pp.backend.registration import planar_ransac, register_loop
 from vggt_slam_pp.backend.store import SubmapStore
@@ -1752,7 +1753,7 @@ def test_a_lone_loop_contradicted_by_a_verified_loop_between_the_same_places_wai
     closer.loops, closer._pending = [], []
     closer._wait(look_alike)
     assert closer.contradicted(confirmed) == [] and closer.odometry_consistent(confirmed)
-    assert closer.contradicted(dataclasses.replace(confirmed, guess="landmarks")) == [0]  # not independent
+    assert closer.contradicted(dataclasses.replace(confirmed, guess=LANDMARKS_GUESS)) == [0]  # not independent
     closer.loops[0] = dataclasses.replace(closer.loops[0], images_confirm=True)
     assert closer.contradicted(confirmed) == [0] and not closer.odometry_consistent(confirmed)
     closer.loops[0] = dataclasses.replace(look_alike, accepted=True)

@@ -58,6 +58,7 @@ from vggt_slam_pp.backend.appearance import LANDMARKS_GUESS, ImageCheck
 from vggt_slam_pp.backend.search import (
     SearchConfig,
     colour_match,
+    footprint_overlap,
     free_space_agreement,
     hue_vectors,
     own_up,
@@ -78,6 +79,9 @@ class RegistrationConfig:
     icp_iterations: int = 12  # the rejection radius shrinks over these, then
     icp_final_iterations: int = 6  # these at the inlier radius
     icp_scale_rounds: int = 3  # the last rounds solve for scale too (more: a partial overlap shrinks onto itself)
+    icp_scale_at_cue: bool = True  # where the cameras' heights are measured to hold, ICP keeps the guesses at
+    # their scale instead (the landmarks' guess keeps its own, measured scale and refines it): their ratio is
+    # nearer the truth than ICP's scale on a partial overlap (docs/backend.md, "registration")
     symmetric_scale: bool = True  # where the cameras' heights have not measured the loop's scale (a flying or
     # hand-held camera, a short recording), a verified loop's scale is the mean (in log) of ICP's from the query
     # onto the match and from the match back onto the query: each direction shrinks the cloud it moves onto the
@@ -96,6 +100,9 @@ class RegistrationConfig:
     min_structure_points: int = 50
     min_overlap: float = 0.2
     min_structure_overlap: float = 0.25  # wrong candidates measured <= 0.16 (bench loops scenes)
+    min_footprint_overlap: float = 0.3  # share of the smaller footprint (one-tile ground cells) the two share at
+    # the result: a revisit as bench loops defines one (search.footprint_overlap; 0: not tested)
+    footprint_min_points: int = 3  # a cell is in a footprint with this many points
     max_residual_tiles: float = 0.15
     min_vote_margin: float = 0.0  # score(candidate) - score(next); 0 disables
     search: SearchConfig = field(default_factory=SearchConfig)  # no initial guess: backend/search.py
@@ -180,6 +187,7 @@ class LoopResult:
     appearance_comparable: int = -1  # query landmarks the alignment brings near a match landmark seen from a
     # similar direction (-1: not measured)
     images_confirm: bool = False  # the landmarks' own alignment is this loop's (ImageCheck.confirms)
+    footprint_overlap: float = -1.0  # share of ground the two cover at the result (-1: not measured)
     seconds: float = 0.0  # CPU time of its registration and verification (the back-end's thread)
 
     def to_dict(self) -> dict:
@@ -189,7 +197,8 @@ class LoopResult:
                 "constraint_ratio": self.constraint_ratio, "source": self.source,
                 "agreement": self.agreement, "agreement_cells": self.agreement_cells, "scale_cue": self.scale_cue,
                 "appearance": self.appearance, "appearance_comparable": self.appearance_comparable,
-                "images_confirm": self.images_confirm, "seconds": self.seconds,
+                "images_confirm": self.images_confirm, "footprint_overlap": self.footprint_overlap,
+                "seconds": self.seconds,
                 **({"T_match_query": self.T_match_query.tolist()} if self.T_match_query is not None else {}),
                 **({"information": self.information.tolist()} if self.information is not None else {})}
 
@@ -601,8 +610,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
 
     found = search_alignments(src, dst, up_q, up_m, unit, T0, max_log_scale, bounds.max_yaw_deg,
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst, cue)
-    for k, (G, _) in enumerate(found):
-        guesses[f"search_{k + 1}"] = G
+    at_cue = cue is not None and height_measured and c.icp_scale_at_cue
+    for k, (G, _) in enumerate(found):  # searched within the cue's tolerance; at the cue where ICP holds it
+        guesses[f"search_{k + 1}"] = G @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(G)[0]) if at_cue else G
     tree = _REUSED.get(match, points_match, ("tree",), lambda: cKDTree(dst))
     # the query's structure and ground as its own ground plane sees them: a wrong scale or height that
     # lifts its ground onto the match's buildings must not turn that ground into "structure"
@@ -677,7 +687,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                 return bool(np.isfinite(d_s).mean() >= c.icp_check_share * c.min_structure_overlap)
 
             la = images.alignment if images is not None and name == LANDMARKS_GUESS else None
-            fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, c.icp_scale_rounds,
+            rounds = 0 if at_cue and name != LANDMARKS_GUESS else c.icp_scale_rounds  # the cameras' scale held
+            fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, rounds,
                                      check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None,
                                      anchors=None if la is None else (transform_points(G, la.query_xyz), la.match_xyz))
             if fit is None:
@@ -734,6 +745,12 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         beyond = outside_bounds(Z)
         if beyond:
             return reject(beyond, **kw)
+        # every point, not the subsample ICP fits: a sparse cloud's footprint would lose its far cells
+        shared_ground = footprint_overlap(transform_points(Z, points_query) @ level.T, points_match @ level.T, unit,
+                                          c.footprint_min_points)
+        kw.update(footprint_overlap=shared_ground)
+        if shared_ground < c.min_footprint_overlap:
+            return reject(f"footprints overlap {shared_ground:.2f} < {c.min_footprint_overlap}", **kw)
         for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
             d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
             if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:

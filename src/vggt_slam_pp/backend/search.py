@@ -188,6 +188,21 @@ def cell_heights(levelled: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndar
     return keys[last], h[last], order[last]
 
 
+def footprint_overlap(a_levelled: np.ndarray, b_levelled: np.ndarray, cell: float, min_points: int = 3) -> float:
+    """The share of ground the two aligned, levelled clouds [N,3], [M,3] (height last, one frame) both cover,
+    of the smaller one's: ``cell``-sized cells holding at least ``min_points`` points of a cloud are its
+    footprint (a stray point does not widen it). What ``bench loops`` calls a revisit, measured on the
+    submaps themselves (docs/backend.md, "registration")."""
+    def cells(P: np.ndarray) -> set:
+        if not len(P):
+            return set()
+        keys, counts = np.unique(np.floor(np.asarray(P)[:, :2] / cell).astype(np.int64), axis=0, return_counts=True)
+        return set(map(tuple, keys[counts >= min_points]))
+
+    a, b = cells(a_levelled), cells(b_levelled)
+    return len(a & b) / max(1, min(len(a), len(b)))
+
+
 def free_space_agreement(src_levelled: np.ndarray, dst_levelled: np.ndarray, cell: float, above: float,
                          max_pixels: int = 4_000_000, src_hue: np.ndarray | None = None,
                          dst_hue: np.ndarray | None = None, src_structure: np.ndarray | None = None

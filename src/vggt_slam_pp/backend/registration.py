@@ -577,12 +577,17 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         up_m = _REUSED_SMALL.get(match, points_match, ("up", up_m.tobytes(), unit, c.max_up_tilt_deg),
                                  lambda: own_up(dst, up_m, unit, c.max_up_tilt_deg, seed=match))
     cue = None
+
+    def at_cue_scale(G: np.ndarray) -> np.ndarray:
+        """Guess ``G`` rescaled to the cameras' height ratio about the query's centroid."""
+        return G @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(G)[0])
+
     if c.height_cue and height_query is not None and height_match is not None:
         cue = (height_match / height_query, c.height_cue_tolerance if height_measured else
                c.height_cue_unmeasured_tolerance)
         # the estimate's guesses at the cameras' scale, about the query's centroid (heights measured to hold)
         for k in list(guesses) if height_measured else ():
-            guesses[k] = guesses[k] @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(guesses[k])[0])
+            guesses[k] = at_cue_scale(guesses[k])
 
     def off_cue(T: np.ndarray, slack: float = 0.0) -> bool:
         """Whether ``T``'s scale lies outside the cameras' height cue, widened by ``slack`` in log-scale (False
@@ -612,7 +617,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               bounds.max_translation / float(s_m), c.search_peaks, c.search, hue_src, hue_dst, cue)
     at_cue = cue is not None and height_measured and c.icp_scale_at_cue
     for k, (G, _) in enumerate(found):  # searched within the cue's tolerance; at the cue where ICP holds it
-        guesses[f"search_{k + 1}"] = G @ _scaled_about(src.mean(0), cue[0] / decompose_sim3(G)[0]) if at_cue else G
+        guesses[f"search_{k + 1}"] = at_cue_scale(G) if at_cue else G
     tree = _REUSED.get(match, points_match, ("tree",), lambda: cKDTree(dst))
     # the query's structure and ground as its own ground plane sees them: a wrong scale or height that
     # lifts its ground onto the match's buildings must not turn that ground into "structure"

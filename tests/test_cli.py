@@ -158,7 +158,8 @@ def test_bench_passes_the_seed_to_the_synthetic_suites(capsys, monkeypatch, tmp_
             return result
         return bench
 
-    cov = {"scenes": {}, "covisibility_recall": None, "covisibility_recall_votes": None, "vpr_top1_precision": None}
+    cov = {"scenes": {}, "covisibility_recall": None, "covisibility_recall_votes": None, "candidate_recall": None,
+           "vpr_top1_precision": None}
     monkeypatch.setattr(benchmarks, "bench_covisibility", fake("covisibility", cov))
     loops = {"scenarios": {}, "mean_ate_reduction": None, "false_loops": 0, "min_fps_ratio": 1.0, "loops_off_truth": 2,
              "loops_verified": 9, "verified_off_truth": 4}

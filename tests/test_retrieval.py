@@ -349,6 +349,30 @@ def test_sequence_prior_adds_the_previous_match_and_its_neighbours(rng):
     assert all(e.match < 8 - stage.config.index.exclude_recent for e in nxt.edges)
 
 
+def test_loop_candidates_are_ranked_from_a_pool_wider_than_the_covisibility_edges(rng):
+    """Under drift a revisit's true match is often voted below the top K (the covisibility edges): places that
+    look alike elsewhere out-vote it. The loop candidates are ranked from the ``candidate_pool`` best-voted
+    submaps, so the structure re-ranking still finds it where it lies; the covisibility edges stay the top K."""
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
+
+    place = _region(rng, 0.0)
+    cams = lambda p: p.mean(0, keepdims=True) + [0.0, 0.0, 5.0]  # noqa: E731
+    # the true match saw part of the place; exact copies of it lie far away
+    layers = [place[place[:, 0] < 9.0]] + [place + [48.0 * k, 0.0, 0.0] for k in (2, 3, 4, 5)]
+
+    def query(pool: int):
+        stage = CovisibilityStage.create(HogEncoder(), CovisibilityConfig(index=IndexConfig(top_k=2),
+                                                                          candidate_pool=pool))
+        for k, pts in enumerate(layers):
+            stage.process(k, pts, cams(pts))
+        return stage.process(len(layers) + 2, place, cams(place))
+
+    narrow, wide = query(2), query(6)
+    assert 0 not in {e.match for e in narrow.edges} | {c.match for c in narrow.candidates}  # out-voted
+    assert wide.candidates[0].match == 0
+    assert [(e.match, e.source) for e in wide.edges] == [(e.match, e.source) for e in narrow.edges]
+
+
 def test_sequence_prior_follows_the_submaps_not_the_order_of_the_queries(rng):
     """A worker catching up defers the oldest queries and runs them later: a deferred query still follows
     its predecessor's matches, and a live query whose predecessor was deferred follows nothing."""

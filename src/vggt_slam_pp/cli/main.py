@@ -440,10 +440,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                workdir=str(args.workdir or "runs/bench_covisibility"))
         summary = _per_scene(result["scenes"], lambda r: (
             f"{r['submaps']} submaps, {r['revisit_queries']} revisit queries, covisibility recall "
-            f"{r['covisibility_recall']} (voting alone {r['covisibility_recall_votes']}), VPR top-1 precision "
-            f"{r['vpr_top1_precision']}"))
+            f"{r['covisibility_recall']} (voting alone {r['covisibility_recall_votes']}), loop candidate recall "
+            f"{r['candidate_recall']}, VPR top-1 precision {r['vpr_top1_precision']}"))
         summary += (f"\nmean: covisibility recall {result['covisibility_recall']} (target >= 0.9; voting alone "
-                    f"{result['covisibility_recall_votes']}), "
+                    f"{result['covisibility_recall_votes']}), loop candidate recall {result['candidate_recall']}, "
                     f"VPR top-1 precision {result['vpr_top1_precision']} (target >= 0.8)")
     if args.json:
         _print_json(result)

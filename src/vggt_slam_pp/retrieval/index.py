@@ -126,8 +126,9 @@ class TileIndex:
         q = self._check(queries)
         return self.index.search(q, k or self.config.k)
 
-    def vote(self, query_submap: int, chips: np.ndarray) -> list[CovisibilityEdge]:
-        """Covisibility edges of ``query_submap`` from its chip descriptors [C,dim]."""
+    def vote(self, query_submap: int, chips: np.ndarray, top_k: int | None = None) -> list[CovisibilityEdge]:
+        """Covisibility edges of ``query_submap`` from its chip descriptors [C,dim], best first (at most
+        ``top_k``, default ``IndexConfig.top_k``)."""
         c = self.config
         if len(self) == 0 or len(chips) == 0:
             return []
@@ -147,7 +148,7 @@ class TileIndex:
         cand = np.unique(submaps[~excluded])
         score = np.array([sims[submaps == s].sum() for s in cand]) / len(chips)
         votes = np.array([int(((submaps == s) & ~excluded).sum()) for s in cand])
-        order = np.argsort(-score, kind="stable")[: c.top_k]
+        order = np.argsort(-score, kind="stable")[: top_k or c.top_k]
         return [CovisibilityEdge(query_submap, int(cand[i]), float(score[i]), int(votes[i]))
                 for i in order if score[i] >= c.tau_s and score[i] > 0]
 

@@ -229,7 +229,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
     recognition (the first ``BackendConfig.candidates_per_query`` of the re-ranked candidates, then the edges).
     """
     from vggt_slam_pp.backend.config import BackendConfig
-    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage
+    from vggt_slam_pp.backend.places import CovisibilityConfig, CovisibilityStage, ranked_matches
     from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
     from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
     from vggt_slam_pp.frontend.keyframes import KeyframeConfig
@@ -269,9 +269,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
             found = {e.match for e in out.edges}
             hit += bool(true & found)
             hit_votes += bool(true & {e.match for e in out.edges if e.source == "votes"})
-            ranked = [c.match for c in out.candidates]  # in the order LoopCloser.candidates takes them
-            ranked += [e.match for e in out.edges if e.match not in set(ranked)]
-            hit_cands += bool(true & set(ranked[:per_query]))
+            hit_cands += bool(true & {j for j, _ in ranked_matches(out)[:per_query]})
             if out.candidates:
                 cand_total += 1
                 cand_ok += out.candidates[0].match in true

@@ -34,7 +34,7 @@ from vggt_slam_pp.backend.appearance import LANDMARKS_GUESS, ImageCheck
 from vggt_slam_pp.backend.config import BackendConfig
 from vggt_slam_pp.backend.graph import Edge
 from vggt_slam_pp.backend.map import Map, subsample
-from vggt_slam_pp.backend.places import StageResult
+from vggt_slam_pp.backend.places import StageResult, ranked_matches
 from vggt_slam_pp.backend.registration import (
     LoopBounds,
     LoopResult,
@@ -88,9 +88,7 @@ class LoopCloser:
         m = self.map
         count = self.config.candidates_per_query
         if m.is_placed(sid):
-            ranked = [(c.match, c.score) for c in res.candidates]
-            seen = {j for j, _ in ranked}
-            ranked += [(c.match, c.score) for c in res.edges if c.match not in seen]
+            ranked = ranked_matches(res)
         else:  # where it lies is unknown: the re-ranking by DEM correlation near the estimate means nothing
             ranked = [(c.match, c.score) for c in res.edges if c.source == "votes"]
             count = self.config.unplaced_candidates

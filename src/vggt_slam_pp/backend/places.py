@@ -95,6 +95,14 @@ class StageResult:
     described: Described | None  # the query's layer, for :meth:`Gallery.add` (None once inserted)
 
 
+def ranked_matches(result: StageResult) -> list[tuple[int, float]]:
+    """(match, score) of a query's loop candidates in their order, then of its other edges in theirs: the order
+    in which place recognition proposes matches to the back-end."""
+    out = [(c.match, c.score) for c in result.candidates]
+    seen = {j for j, _ in out}
+    return out + [(e.match, e.score) for e in result.edges if e.match not in seen]
+
+
 def camera_depth(points: np.ndarray, camera_centers: np.ndarray) -> float | None:
     """The median distance of points [N,3] to the nearest of their cameras [S,3] (None without either)."""
     if not len(points) or not len(camera_centers):
@@ -285,8 +293,8 @@ class CovisibilityStage:
         covisible = voted[: c.index.top_k]  # the covisibility edges (SPEC: the top K = 10 by votes)
         sequence = self._sequence_edges(submap_id, {e.match for e in covisible})
         edges = covisible + sequence
-        pool = voted + [e for e in sequence if e.match not in {v.match for v in voted}]  # the loop candidates'
-        # ranking reads these
+        in_pool = {e.match for e in voted}
+        pool = voted + [e for e in sequence if e.match not in in_pool]  # what the loop candidates are ranked from
         t["vote_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         candidates: list[LoopCandidate] = []

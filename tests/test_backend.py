@@ -538,6 +538,53 @@ def test_the_images_give_a_guess_where_the_points_fail_and_refuse_what_they_disa
     assert not r.accepted and "within the ICP's reach" in r.reason and not fits, r.reason
 
 
+def test_a_loop_the_images_would_place_elsewhere_is_refined_from_their_alignment_too(rng):
+    """A verified loop whose images could confirm it but place it elsewhere is refined from the landmarks' own
+    alignment as well; where that fit verifies and the images confirm it, it is the loop. A round courtyard (a
+    circular wall on flat ground) fits the points at any turn about its axis: from the estimate ICP verifies the
+    estimate's turn, 6 deg off, while the images' corners agree on the truth."""
+    from vggt_slam_pp.backend.appearance import AppearanceConfig, ImageCheck
+    from vggt_slam_pp.backend.registration import RegistrationConfig
+    from vggt_slam_pp.frontend.types import Landmarks
+
+    plane = GroundPlane(np.zeros(3), np.eye(3))
+    a = rng.uniform(0, 2 * np.pi, 6000)
+    r = 20 * np.sqrt(rng.uniform(0, 1, 6000))
+    ground = np.c_[r * np.cos(a), r * np.sin(a), rng.normal(0, 0.01, 6000)]
+    b = rng.uniform(0, 2 * np.pi, 4000)
+    wall = np.c_[10 * np.cos(b), 10 * np.sin(b), rng.uniform(0, 3, 4000)]
+    world = np.r_[ground, wall]
+    truth = make_sim3(1.0, so3_exp(np.array([0.0, 0.0, np.radians(6.0)])), np.zeros(3))  # T_match_query
+    corners = wall[rng.choice(len(wall), 300, replace=False)]
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    view = np.tile([[1.0, 0.0, 0.0]], (300, 1)).astype(np.float32)
+    q_corners = transform_points(sim3_inverse(truth), corners) + rng.normal(0, 0.02, corners.shape)
+    images = ImageCheck(Landmarks(q_corners.astype(np.float32), desc, np.zeros(300, np.int16), view),
+                        Landmarks(corners.astype(np.float32), desc, np.zeros(300, np.int16), view), 2.0, AppearanceConfig())
+    seen_again = world + rng.normal(0, 0.01, world.shape)  # the courtyard looks the same at every turn
+    local = dataclasses.replace(RegistrationConfig(), search_peaks=0, height_cue=False)  # the estimate's guess only
+    r = register_loop(5, 1, seen_again, world, np.eye(4), np.eye(4), plane, 2.0, config=local, images=images)
+    assert r.accepted and r.guess == LANDMARKS_GUESS and r.images_confirm, r.reason
+    assert np.allclose(r.T_match_query, truth, atol=0.02), r.T_match_query
+    alone = dataclasses.replace(local, images_second_opinion=False)
+    r = register_loop(5, 1, seen_again, world, np.eye(4), np.eye(4), plane, 2.0, config=alone, images=images)
+    assert r.accepted and r.guess == "odometry" and not r.images_confirm, r.reason
+    assert np.allclose(r.T_match_query, np.eye(4), atol=0.02)
+    assert r.appearance >= 250  # at 6 deg the corners still lie within the radius: the images do not refuse it
+    # a second courtyard 30 m on, whose corners the query's match: the images' alignment verifies there too, but
+    # that is another place, which the points can tell from theirs; the points' loop stands
+    twin = np.r_[world, wall + [30.0, 0.0, 0.0], ground[ground[:, 0] > 10] + [30.0, 0.0, 0.0]]
+    elsewhere = ImageCheck(Landmarks(corners.astype(np.float32), desc, np.zeros(300, np.int16), view),
+                           Landmarks((corners + [30.0, 0.0, 0.0]).astype(np.float32), desc, np.zeros(300, np.int16),
+                                     view), 2.0, AppearanceConfig())
+    assert elsewhere.alignment is not None and elsewhere.alignment.inliers == 300
+    for match_points in (twin, world):  # ... and where the images' alignment does not verify at all (no courtyard)
+        r = register_loop(5, 1, seen_again, match_points, np.eye(4), np.eye(4), plane, 2.0, config=local,
+                          images=elsewhere)
+        assert r.accepted and r.guess == "odometry" and not r.images_confirm, r.reason
+        assert np.allclose(r.T_match_query, np.eye(4), atol=0.02)
+
+
 def test_icp_stops_a_fit_that_its_check_finds_hopeless_and_is_unchanged_by_one_it_passes(rng):
     """ICP's mid-way check (RegistrationConfig.icp_check_iteration / icp_check_share): a fit whose structure is not
     yet on the match's at the inlier radius is dropped there; a check that passes changes nothing."""

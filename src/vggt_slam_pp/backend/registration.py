@@ -82,6 +82,10 @@ class RegistrationConfig:
     icp_scale_at_cue: bool = True  # where the cameras' heights are measured to hold, ICP keeps the guesses at
     # their scale instead (the landmarks' guess keeps its own, measured scale and refines it): their ratio is
     # nearer the truth than ICP's scale on a partial overlap (docs/backend.md, "registration")
+    images_second_opinion: bool = True  # a loop verified from the points' guesses that the images could confirm but
+    # do not is refined from the landmarks' guess too; where that fit verifies, the images confirm it and the points
+    # cannot tell it from theirs (within two ICP radii, ranked within ambiguity_ratio), it is the loop
+    # (docs/backend.md, "appearance")
     symmetric_scale: bool = True  # where the cameras' heights have not measured the loop's scale (a flying or
     # hand-held camera, a short recording), a verified loop's scale is the mean (in log) of ICP's from the query
     # onto the match and from the match back onto the query: each direction shrinks the cloud it moves onto the
@@ -527,6 +531,9 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             still bring it within the bounds and the cue, and its ICP holds the landmark pairs that agree on
             it (``anchors``); a verified loop records whether that alignment confirms it
             (``LoopResult.images_confirm``, :meth:`~vggt_slam_pp.backend.appearance.ImageCheck.confirms`).
+            Where the points verify a loop that alignment could confirm but does not, it is refined from that
+            guess alone too, and that fit is the loop if it verifies and is confirmed
+            (``RegistrationConfig.images_second_opinion``).
         height_measured: whether the recording's heights have been measured to hold steady
             (:meth:`~vggt_slam_pp.backend.map.Map.height_cue`). If not, the cue is only a loose bound
             (``height_cue_unmeasured_tolerance``) and the guesses keep their own scale.
@@ -779,12 +786,30 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         return LoopResult(query, match, True, "accepted", Z, C, score=score, information=info, **kw)
 
     first = attempt(guesses)
-    more = images.guesses() if images is not None and not first.accepted else {}
+    more = images.guesses() if images is not None else {}
     # a guess the refinement cannot bring within the limits would only cost an ICP (a periodic texture's
     # landmarks agree on alignments a period apart: most first-lap candidates had one, docs/backend.md)
     more = {k: G for k, G in more.items() if outside_bounds(G, reach=1.0) is None}
     if not more:
         return first
+    if first.accepted:
+        could_confirm = images.alignment.inliers >= images.config.confirm_min_inliers
+        if first.images_confirm or not could_confirm or not c.images_second_opinion:
+            return first
+        # the points verified one alignment, the images agree on another: refined from theirs, it is the loop
+        # where the points cannot tell the two apart (the same place, nearly as good) and the images confirm it
+        second = attempt(more)
+        if not second.accepted:
+            log.debug("loop %d->%d: the images' own alignment does not verify (%s)", query, match, second.reason)
+            return first
+        centre = src.mean(0)[None]
+        apart = np.linalg.norm(transform_points(second.T_match_query, centre) - transform_points(first.T_match_query, centre))
+        ranks = [r.agreement * r.structure_overlap for r in (second, first)]
+        wins = second.images_confirm and apart <= 2 * c.icp_radius_tiles * unit and ranks[0] >= c.ambiguity_ratio * ranks[1]
+        log.debug("loop %d->%d: the images' own alignment %s the points' (confirmed: %s, %.2f apart, ranked %.2f "
+                  "against %.2f)", query, match, "replaces" if wins else "does not replace", second.images_confirm,
+                  apart, *ranks)
+        return second if wins else first
     # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs
     second = attempt({**guesses, **more})
     return second if second.accepted else first

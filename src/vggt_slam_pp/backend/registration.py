@@ -532,8 +532,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             it (``anchors``); a verified loop records whether that alignment confirms it
             (``LoopResult.images_confirm``, :meth:`~vggt_slam_pp.backend.appearance.ImageCheck.confirms`).
             Where the points verify a loop that alignment could confirm but does not, it is refined from that
-            guess alone too, and that fit is the loop if it verifies and is confirmed
-            (``RegistrationConfig.images_second_opinion``).
+            guess alone too, and that fit is the loop if it verifies, is confirmed and the points cannot tell it
+            from theirs (``RegistrationConfig.images_second_opinion``).
         height_measured: whether the recording's heights have been measured to hold steady
             (:meth:`~vggt_slam_pp.backend.map.Map.height_cue`). If not, the cue is only a loose bound
             (``height_cue_unmeasured_tolerance``) and the guesses keep their own scale.

@@ -660,6 +660,13 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     radii = np.r_[np.geomspace(c.icp_radius_tiles, c.inlier_radius_tiles, c.icp_iterations),
                   [c.inlier_radius_tiles] * c.icp_final_iterations] * unit
     r_in = c.inlier_radius_tiles * unit
+    same_place = 2 * c.icp_radius_tiles * unit  # two alignments further apart place the query elsewhere
+
+    def apart(A: np.ndarray, B: np.ndarray) -> float:
+        """How far alignments ``A`` and ``B`` [4,4] place the query's centroid from each other (match frame)."""
+        centre = src.mean(0)[None]
+        return float(np.linalg.norm(transform_points(A, centre) - transform_points(B, centre)))
+
     shared: dict = {}  # what every attempt derives alike, made once a guess is within reach: the match's ground
     # tree and normals, the query's points ICP fits, and the fits by their guess
 
@@ -764,8 +771,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         if shared_ground < c.min_footprint_overlap:
             return reject(f"footprints overlap {shared_ground:.2f} < {c.min_footprint_overlap}", **kw)
         for other in refined[1:]:  # a distinct alignment nearly as good: repetitive structure, ambiguous
-            d_other = np.linalg.norm(transform_points(other.Z, src.mean(0)[None]) - transform_points(Z, src.mean(0)[None]))
-            if d_other > 2 * c.icp_radius_tiles * unit and other.rank >= c.ambiguity_ratio * best.rank:
+            if apart(other.Z, Z) > same_place and other.rank >= c.ambiguity_ratio * best.rank:
                 return reject(f"ambiguous: guess {other.guess} aligns elsewhere nearly as well ({other.rank:.2f} against "
                               f"{best.rank:.2f})", **kw)
         T_icp = best.T_icp
@@ -802,13 +808,12 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
         if not second.accepted:
             log.debug("loop %d->%d: the images' own alignment does not verify (%s)", query, match, second.reason)
             return first
-        centre = src.mean(0)[None]
-        apart = np.linalg.norm(transform_points(second.T_match_query, centre) - transform_points(first.T_match_query, centre))
-        ranks = [r.agreement * r.structure_overlap for r in (second, first)]
-        wins = second.images_confirm and apart <= 2 * c.icp_radius_tiles * unit and ranks[0] >= c.ambiguity_ratio * ranks[1]
+        distance = apart(second.T_match_query, first.T_match_query)
+        ranks = [r.agreement * r.structure_overlap for r in (second, first)]  # as the fits were ranked (both grounded)
+        wins = second.images_confirm and distance <= same_place and ranks[0] >= c.ambiguity_ratio * ranks[1]
         log.debug("loop %d->%d: the images' own alignment %s the points' (confirmed: %s, %.2f apart, ranked %.2f "
                   "against %.2f)", query, match, "replaces" if wins else "does not replace", second.images_confirm,
-                  apart, *ranks)
+                  distance, *ranks)
         return second if wins else first
     # the images' guesses, only where the point guesses failed: wherever those verify, the result is theirs
     second = attempt({**guesses, **more})

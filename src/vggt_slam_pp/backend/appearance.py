@@ -87,6 +87,13 @@ class ImageCheck:
         return landmark_alignment(self.query, self.match, self.radius, self.config.max_hamming,
                                   self.config.guess_min_inliers, self.seed)
 
+    @property
+    def can_confirm(self) -> bool:
+        """Whether the landmarks' own alignment rests on enough agreeing matches (``confirm_min_inliers``) to
+        confirm a loop (:meth:`confirms`)."""
+        found = self.alignment
+        return found is not None and found.inliers >= self.config.confirm_min_inliers
+
     def confirms(self, T_match_query: np.ndarray) -> bool:
         """Whether the landmarks' own alignment (:attr:`alignment`, from at least ``confirm_min_inliers``
         agreeing matches) is ``T_match_query`` [4,4] within ``confirm_deg``, ``confirm_log_scale`` and, at
@@ -96,7 +103,7 @@ class ImageCheck:
         pose; the points' verification and the landmarks' consensus still are. False without an alignment
         (``config.guess`` off, or too few agree)."""
         c, found = self.config, self.alignment
-        if found is None or found.inliers < c.confirm_min_inliers:
+        if not self.can_confirm:
             return False
         s, R, _ = decompose_sim3(sim3_inverse(found.T_match_query) @ np.asarray(T_match_query, float))
         angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))

@@ -799,8 +799,7 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
     if not more:
         return first
     if first.accepted:
-        could_confirm = images.alignment.inliers >= images.config.confirm_min_inliers
-        if first.images_confirm or not could_confirm or not c.images_second_opinion:
+        if first.images_confirm or not images.can_confirm or not c.images_second_opinion:
             return first
         # the points verified one alignment, the images agree on another: refined from theirs, it is the loop
         # where the points cannot tell the two apart (the same place, nearly as good) and the images confirm it

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from vggt_slam_pp.io.trajectory import Trajectory, write_tum
 from vggt_slam_pp.synthetic.trajectories import look_along
 
 
@@ -36,11 +37,7 @@ def _write(path: Path, fps: float, positions: np.ndarray, forward: np.ndarray, p
     poses = look_along(positions, forward, pitch_deg)
     if roll is not None:
         poses[:, :3, :3] = poses[:, :3, :3] @ Rotation.from_rotvec(np.c_[0 * roll, 0 * roll, roll]).as_matrix()
-    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
-    with open(path, "w") as f:
-        f.write("# timestamp tx ty tz qx qy qz qw\n")
-        for k, (p, r) in enumerate(zip(positions, q, strict=True)):
-            f.write(f"{k / fps:.4f} {p[0]:.5f} {p[1]:.5f} {p[2]:.5f} {r[0]:.6f} {r[1]:.6f} {r[2]:.6f} {r[3]:.6f}\n")
+    write_tum(path, Trajectory(np.arange(len(poses)) / fps, poses))
 
 
 def _ellipse(laps: float, n: int, a: float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

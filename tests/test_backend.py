@@ -115,30 +115,30 @@ def test_the_loops_of_one_query_count_as_one_measurement():
         assert np.isclose(shared.robust().weight(d_shared), own.robust().weight(d_own))
 
 
-def _scale_drift_chain(rng, n: int = 30, step: float = 0.06):
+def _scale_drift_chain(rng, n: int = 30, step: float = 0.06, config: GraphConfig | None = None):
     """A straight drive (submaps 10 m apart, each at scale 1 in the world) whose odometry edges are off in
     scale by exp(N(0, ``step``)) each: the chained scale is a random walk."""
     gt = [make_sim3(1.0, np.eye(3), np.array([10.0 * k, 0.0, 0.0])) for k in range(n)]
-    g = PoseGraph(GraphConfig())
+    g = PoseGraph(config or GraphConfig())
     g.add_node(0, gt[0])
     T = gt[0]
     for k in range(1, n):
         meas = make_sim3(float(np.exp(rng.normal(0, step))), np.eye(3), np.array([10.0, 0.0, 0.0]))
         T = T @ meas
         g.add_node(k, T)
-        g.add_edge(Edge(k - 1, k, meas, g.odometry_sigmas(meas, 0.05), "odometry"))
+        g.add_edge(Edge(k - 1, k, meas, g.odometry_sigmas(meas, 0.05), "odometry", {"prior_scale": True}))
     return g, gt
 
 
 def test_the_odometry_scale_walk_is_measured_from_the_loops_where_no_heights_measure_it(rng):
     """A hand-held camera's odometry walks in scale and no heights measure it: the loops' cycles do
-    (PoseGraph.loop_scale_noise). Measured, the odometry no longer holds its 1 % scale sigma against the loops,
-    and the solve keeps the loops' scale; a front-end that hardly drifts is measured below that sigma and solved
-    as before."""
-    def solve(step: float, measure: bool, gate: float = 0.02) -> tuple[PoseGraph, list]:
-        g, gt = _scale_drift_chain(np.random.default_rng(3), n=16, step=step)
+    (PoseGraph.loop_scale_noise). Measured, the odometry no longer holds a 1 % scale sigma against the loops,
+    and the solve keeps the loops' scale; a front-end that hardly drifts is measured below ``min_scale_drift`` and
+    solved at ``min_odometry_scale_sigma``, not at the prior walk."""
+    def solve(step: float, measure: bool, gate: float = 0.02, prior: float = 0.01) -> tuple[PoseGraph, list]:
         # (the kernel: other tests)
-        g.config = GraphConfig(robust_kernel="none", loop_scale_noise=measure, min_scale_drift=gate)
+        g, gt = _scale_drift_chain(np.random.default_rng(3), n=16, step=step, config=GraphConfig(
+            robust_kernel="none", loop_scale_noise=measure, min_scale_drift=gate, odometry_scale_sigma=prior))
         for q in range(4, len(gt)):
             for m in (q - 4, q - 3):  # revisits 3-4 submaps back, 1 % error in scale and 0.1 tile in position
                 loop = sim3_inverse(gt[m]) @ gt[q] @ make_sim3(float(np.exp(rng.normal(0, 0.01))), np.eye(3),
@@ -149,18 +149,27 @@ def test_the_odometry_scale_walk_is_measured_from_the_loops_where_no_heights_mea
         return g, np.abs(log_s - np.median(log_s))
 
     measured, err = solve(0.06, True)
-    held, err_held = solve(0.06, False)
+    held, err_held = solve(0.06, False)  # a 1 % prior, never measured
     assert 0.03 < measured.loop_scale_noise() < 0.12  # the edges' 0.06
     assert measured.last_solve["odometry_scale_sigma"] == pytest.approx(measured.loop_scale_noise())
     assert measured.last_solve["odometry_scale_measured_by"] == "loops"
     assert held.last_solve["odometry_scale_sigma"] is held.last_solve["odometry_scale_measured_by"] is None
     assert err.max() < 0.5 * err_held.max()
-    steady, _ = solve(0.002, True)  # the loops' own 1 % dominates their cycles: measured below the default sigma
-    assert steady.loop_scale_noise() < steady.config.odometry_scale_sigma
-    assert steady.last_solve["odometry_scale_sigma"] is None
-    gated, _ = solve(0.06, True, gate=0.2)  # a walk measured below min_scale_drift is not used
+    _, err_prior = solve(0.06, False, prior=0.05)  # unmeasured, the default prior: the registration's drift model
+    assert err_prior.max() < 0.5 * err_held.max()
+    steady, _ = solve(0.002, True, prior=0.05)  # the loops' own 1 % dominates their cycles: measured below the gate
+    assert steady.loop_scale_noise() < steady.config.min_scale_drift
+    assert steady.last_solve["odometry_scale_sigma"] == steady.config.min_odometry_scale_sigma  # not the prior's 5 %
+    edge = next(e for e in steady.edges if e.kind == "odometry")
+    assert edge.sigmas[6] == 0.05 and steady._noise(edge, "none", 0.01).sigmas()[6] == pytest.approx(0.01)
+    degraded = Edge(edge.i, edge.j, edge.T_ij, edge.sigmas * 100, "odometry", {"prior_scale": True, "degraded": True})
+    assert steady._noise(degraded, "none", 0.01).sigmas()[6] == pytest.approx(0.01 * 100)  # inflation kept
+    own = Edge(edge.i, edge.j, edge.T_ij, np.full(7, 0.002), "odometry")  # measured its own scale: a walk over
+    assert steady._noise(own, "none", 0.03).sigmas()[6] == pytest.approx(0.03)  # the gate is its floor
+    assert steady._noise(own, "none", 0.01).sigmas()[6] == pytest.approx(0.002)  # one under it leaves it
+    gated, _ = solve(0.06, True, gate=0.2)  # a walk measured below min_scale_drift is taken at the floor
     assert 0.03 < gated.loop_scale_noise() < 0.2
-    assert gated.last_solve["odometry_scale_sigma"] is None
+    assert gated.last_solve["odometry_scale_sigma"] == gated.config.min_odometry_scale_sigma
     few = PoseGraph(GraphConfig())  # too few loops measure nothing
     few.add_node(0, np.eye(4))
     few.add_node(1, np.eye(4))
@@ -316,17 +325,24 @@ def test_the_final_solve_keeps_true_loops_of_a_large_drift_that_cauchy_would_pru
     assert kept_cauchy == [] and after_cauchy > 0.7 * before
 
 
-def test_the_final_solve_keeps_cauchy_when_it_prunes_only_a_few_loops(tmp_path, caplog):
-    """One wrong loop among true ones that Cauchy follows: the kernel is doing its job, GNC is not asked."""
+def test_the_final_solve_keeps_cauchy_when_gnc_agrees_with_no_more_loops(tmp_path, caplog):
+    """One wrong loop among true ones that Cauchy follows: the kernel is doing its job. GNC is tried from there,
+    but its solution agrees with no more loops, so Cauchy's is kept, pose for pose."""
     import logging
 
-    graph, gt = _graph_with_drift(bad_loop=True)
-    n = len(gt)
-    graph.add_edge(Edge(1, n - 1, sim3_inverse(gt[1]) @ gt[n - 1], np.r_[[0.01] * 3, [0.05] * 3, 0.01], "loop"))
+    def finished(final_kernel):
+        graph, gt = _graph_with_drift(bad_loop=True)
+        graph.config = GraphConfig(**{**graph.config.__dict__, "final_kernel": final_kernel})
+        n = len(gt)
+        graph.add_edge(Edge(1, n - 1, sim3_inverse(gt[1]) @ gt[n - 1], np.r_[[0.01] * 3, [0.05] * 3, 0.01], "loop"))
+        return graph, _finish(graph, tmp_path / str(final_kernel))
+
     with caplog.at_level(logging.INFO, logger="vggt_slam_pp.backend.backend"):
-        result = _finish(graph, tmp_path / "s")
+        graph, result = finished("gnc")
     assert [r.accepted for r in result.loops] == [True, False, True]  # the wrong one pruned by Cauchy itself
-    assert "weighed again" not in caplog.text
+    assert "weighed with gnc" in caplog.text  # GNC was tried ...
+    cauchy, _ = finished(None)
+    assert all(np.allclose(graph.poses[i], cauchy.poses[i]) for i in cauchy.poses)  # ... and not kept
 
 
 def test_windowed_optimisation_holds_the_rest_fixed():
@@ -1201,7 +1217,10 @@ def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_d
     sig = {e.j: e.sigmas for e in m.graph.edges}
     assert np.allclose(sig[4][[0, 1, 2, 6]], 0.006) and np.allclose(sig[5][[0, 1, 2, 6]], 0.002)
     assert np.isclose(sig[4][3], 0.002 * 10 + 0.01)  # its translation as any edge from the cameras
-    assert np.allclose(sig[2][[0, 1, 2, 6]], 0.01)  # the others: the configured sigmas
+    assert np.allclose(sig[2][[0, 1, 2, 6]], 0.01)  # the others from the cameras: the configured sigmas
+    assert np.allclose(sig[1][[0, 1, 2]], 0.01) and np.isclose(sig[1][6], 0.05)  # from points: the prior scale walk
+    prior = {e.j: e.info["prior_scale"] for e in m.graph.edges}  # a measured walk replaces the prior's 5 % ...
+    assert prior == {1: True, 2: False, 3: True, 4: False, 5: False}  # ... not a scale the cameras measured
 
 
 def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_relative_scale(tmp_path):

@@ -327,6 +327,26 @@ class Backend:
             self.map.refresh_layers(moved)
             self.timings["relocate_s"] += time.perf_counter() - t0
 
+    def _final_kernel(self, kernel: str, final: str, out: int, total: int) -> str:
+        """The end's robust decision, after a global solve with ``kernel`` that would prune ``out`` of ``total``
+        loops: solve again with ``final`` from there (GraphConfig.final_kernel) and keep whichever solution more
+        loops agree with, each within its chi-square bound (``gnc_inlier_probability``, :meth:`PoseGraph.loop_agreement`;
+        a tie keeps ``kernel``). Pruned loops may sit in Cauchy's flat tail, a drift larger than the odometry
+        sigmas say that the solve never went to (GNC closes them), or be wrong, which GNC would then bend the
+        map to: the count of loops the map agrees with tells which (docs/backend.md, "loop acceptance").
+        Returns the kernel whose solution the graph now holds."""
+        graph = self.map.graph
+        before = (dict(graph.poses), dict(graph.height_refs), dict(graph.last_solve), self._version)
+        agree = graph.loop_agreement()
+        self._optimize(None, refresh=False, kernel=final)
+        agree_final = graph.loop_agreement()
+        log.info("the final solve would prune %d of %d loops; %d of them agree with it, %d weighed with %s",
+                 out, total, agree, agree_final, final)
+        if agree_final > agree:
+            return final
+        graph.poses, graph.height_refs, graph.last_solve, self._version = before
+        return kernel
+
     # -- outputs --------------------------------------------------------------------------------
     def snapshot(self) -> PoseSnapshot:
         poses = {}
@@ -358,13 +378,8 @@ class Backend:
             final = graph.config.final_kernel
             weights = graph.loop_weights() if loops else []
             out = sum(w < self.config.min_loop_weight for w in weights)
-            if final and final != kernel and out and out >= 0.5 * len(weights):
-                # the kernel would prune most loops: the solve did not go to them, they sit in its flat tail (a
-                # drift larger than the odometry sigmas say); the final kernel weighs them again from here
-                # (GraphConfig.final_kernel). A few pruned among many kept: the kernel doing its job
-                kernel = final
-                log.info("the final solve would prune %d of %d loops: weighed again with %s", out, len(weights), final)
-                self._optimize(None, refresh=False, kernel=kernel)
+            if final and final != kernel and out:
+                kernel = self._final_kernel(kernel, final, out, len(weights))
             if self.closer.prune(self.config.min_loop_weight, kernel):
                 if not any(e.kind == "loop" for e in graph.edges):
                     kernel = graph.config.robust_kernel  # odometry and heights alone, as without loops

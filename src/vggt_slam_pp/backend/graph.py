@@ -10,9 +10,13 @@ is ``[omega (3), u (3), lambda (1)]``, which fixes the order of the sigmas below
 
 :meth:`PoseGraph.optimize` solves either every node (global) or a window of nodes with the others held
 fixed (their factors become priors of negligible sigma): the cheap per-submap update. When the back-end's
-last global solve would prune most loops, they are weighed again with ``GraphConfig.final_kernel`` (GNC): a
-revisit whose drift is larger than the odometry sigmas say starts in Cauchy's flat tail, where it neither
-moves the map nor keeps its weight.
+last global solve would prune loops, they are weighed again with ``GraphConfig.final_kernel`` (GNC), and the
+solution more loops agree with is kept (:meth:`PoseGraph.loop_agreement`): a revisit whose drift is larger than
+the odometry sigmas say starts in Cauchy's flat tail, where it neither moves the map nor keeps its weight.
+
+The odometry's scale walks (a monocular front-end's submaps drift above all in scale): its edges carry a prior
+walk (``odometry_scale_sigma``, registration's drift model) until the heights or the loops' cycles measure it
+(:meth:`PoseGraph.measured_scale_walk`), which then replaces it in every solve.
 
 Height factors (:meth:`PoseGraph.add_height`): a camera carried at one height above its ground (a car,
 a walker, a robot) measures each submap's scale on its own: ``s_i h_i = H``, where ``h_i`` is the
@@ -45,12 +49,18 @@ class GraphConfig:
     kernel_width: float = 0.5  # in whitened units: our sigmas are ~5x the actual spread (whitened residuals
     # ~0.2-0.5), so 0.5 is about the typical residual; 1.0 left wrong loops almost unweighted (docs/backend.md)
     continuation: bool = False  # cauchy: solve with Huber first, then Cauchy from there
-    final_kernel: str | None = "gnc"  # when the end's global solve (robust_kernel) would prune at least half of the
-    # loops, they are weighed again with this one from there: GNC (PoseGraph._solve_gnc) closes a revisit whose
-    # drift is larger than the odometry sigmas say, which Cauchy leaves in its flat tail (docs/backend.md, "loop
-    # acceptance"); None: robust_kernel alone
+    final_kernel: str | None = "gnc"  # when the end's global solve (robust_kernel) would prune loops, they are
+    # weighed again with this one from there, and the solution more loops agree with is kept (Backend._final_kernel):
+    # GNC (PoseGraph._solve_gnc) closes a revisit whose drift is larger than the odometry sigmas say, which Cauchy
+    # leaves in its flat tail (docs/backend.md, "loop acceptance"); None: robust_kernel alone
     odometry_rot_sigma: float = 0.01  # rad, scaled up by the residual ratio
-    odometry_scale_sigma: float = 0.01  # log-scale
+    odometry_scale_sigma: float = 0.05  # log-scale walk per submap until one is measured (the heights' variogram or
+    # the loops' cycles, PoseGraph.measured_scale_walk): registration's drift model (RegistrationConfig.
+    # scale_sigma_per_submap), what a monocular front-end's submaps drift in scale (docs/backend.md, "pose graph")
+    odometry_scale_sigma_cameras: float = 0.01  # ... an edge from the shared keyframes' cameras measured its scale
+    # there: this, a measured walk only widening it (as before session 61)
+    min_odometry_scale_sigma: float = 0.01  # a measured walk is taken as at least this (the heights' and loops' own
+    # errors, 1-2 %, are as large as what they would measure below it)
     odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
     odometry_trans_sigma_rel_cameras: float = 0.002  # the same for an edge from the shared keyframes' cameras
     # (a sparse backbone, "pose_scale" / "joint" / "anchored"), measured 0.05-0.45 % of the step on the castle walk and
@@ -165,7 +175,8 @@ class PoseGraph:
                         from_cameras: bool = False, relative: float = float("nan")) -> np.ndarray:
         """Sigmas [7] of an odometry edge ``T_ij`` with its fit ``residual`` (i's units): translation
         ``odometry_trans_sigma_rel`` of the step plus the residual; ``from_cameras``: an edge measured from
-        the shared keyframes' cameras (a sparse backbone's), ``odometry_trans_sigma_rel_cameras`` of it.
+        the shared keyframes' cameras (a sparse backbone's), ``odometry_trans_sigma_rel_cameras`` of it, and
+        ``odometry_scale_sigma_cameras`` in scale.
         ``relative``: the edge's own relative uncertainty, when it measures one (rotation and log-scale sigma,
         at least ``odometry_relative_sigma_floor``; otherwise ``odometry_rot_sigma`` / ``odometry_scale_sigma``)."""
         c = self.config
@@ -174,7 +185,7 @@ class PoseGraph:
         residual = float(residual) if np.isfinite(residual) else max(step, 1.0)  # unknown: as large as the step
         rel = c.odometry_trans_sigma_rel_cameras if from_cameras else c.odometry_trans_sigma_rel
         trans = rel * step + max(residual, 1e-4 * max(step, 1e-3), 1e-9)
-        rot, scale = c.odometry_rot_sigma, c.odometry_scale_sigma
+        rot, scale = c.odometry_rot_sigma, c.odometry_scale_sigma_cameras if from_cameras else c.odometry_scale_sigma
         if np.isfinite(relative):
             rot = scale = max(float(relative), c.odometry_relative_sigma_floor)
         sig = np.r_[[rot] * 3, [trans / max(float(s), 1e-9)] * 3, scale]
@@ -302,8 +313,25 @@ class PoseGraph:
         if measured is None or measured[0] < c.min_scale_drift or measured[0] <= 0.0:
             return None  # (no walk measured at all: the heights' weight relative to it is undefined)
         sigma_o, sigma_h = measured
-        used = float(np.clip(sigma_o, c.odometry_scale_sigma, c.max_odometry_scale_sigma))
+        used = float(np.clip(sigma_o, c.min_odometry_scale_sigma, c.max_odometry_scale_sigma))
         return used, max(sigma_h * used / sigma_o, c.min_height_sigma)
+
+    def measured_scale_walk(self) -> tuple[float, str] | None:
+        """The odometry's log-scale walk per submap as measured, and by what: the heights' variogram
+        (:meth:`height_variogram`) or else the loops' cycles (:meth:`loop_scale_noise`); a walk under
+        ``min_scale_drift`` (the loops' and heights' own errors weigh as much) is taken as ``min_odometry_scale_sigma``,
+        one over it is capped at ``max_odometry_scale_sigma``. None: nothing measures it yet (the odometry edges keep
+        the prior ``odometry_scale_sigma``)."""
+        c = self.config
+        walk, by = None, None
+        if c.height_factors and self.heights:
+            measured = self.height_variogram()
+            walk, by = (measured[0], "heights") if measured is not None else (None, None)
+        if walk is None and c.loop_scale_noise:
+            walk, by = self.loop_scale_noise(), "loops"
+        if walk is None:
+            return None
+        return (c.min_odometry_scale_sigma if walk < c.min_scale_drift else min(walk, c.max_odometry_scale_sigma)), by
 
     def loop_shares(self) -> dict[int, int]:
         """Query node -> how many loop edges it has. The loops of one query are registrations of the same points,
@@ -317,7 +345,10 @@ class PoseGraph:
         return out
 
     def _noise(self, edge: Edge, kernel: str, scale_sigma: float | None = None, share: int = 1):
-        """``scale_sigma``: an odometry edge's scale sigma at least this (measured, :meth:`scale_noise`);
+        """``scale_sigma``: the odometry's measured scale walk (:meth:`scale_noise`, :meth:`measured_scale_walk`): it
+        replaces the prior in the scale sigma of an edge built with it (``info["prior_scale"]``), and is a floor
+        for one that measured its own where it is over ``min_odometry_scale_sigma`` (a walk measured under the
+        gate leaves such an edge as it is);
         ``share``: a loop's information divided by this (:meth:`loop_shares`), its robust kernel narrowed to match."""
         import gtsam
 
@@ -325,9 +356,13 @@ class PoseGraph:
             base = gtsam.noiseModel.Gaussian.Information(np.asarray(edge.information, float) / share)
         else:
             sig = np.asarray(edge.sigmas, float) * np.sqrt(share)
-            if scale_sigma is not None and edge.kind == "odometry" and scale_sigma > sig[6]:
+            if scale_sigma is not None and edge.kind == "odometry":
                 sig = sig.copy()
-                sig[6] = scale_sigma
+                if edge.info.get("prior_scale"):  # the prior walk replaced by the measured one (a degraded edge's
+                    # inflation kept)
+                    sig[6] = scale_sigma * (self.config.degraded_inflation if edge.info.get("degraded") else 1.0)
+                elif scale_sigma > self.config.min_odometry_scale_sigma:  # the edge measured its own scale
+                    sig[6] = max(sig[6], scale_sigma)  # uncertainty: at least a walk measured over the floor
             base = gtsam.noiseModel.Diagonal.Sigmas(sig)
         if edge.kind != "loop" or kernel == "none":
             return base
@@ -379,10 +414,8 @@ class PoseGraph:
         iterations = 0
         scale_sigma, height_sigma = scale_model if heights else (None, None)
         measured_by = "heights" if heights else None
-        if scale_sigma is None and self.config.loop_scale_noise:
-            walk = self.loop_scale_noise()
-            if walk is not None and walk >= max(self.config.min_scale_drift, self.config.odometry_scale_sigma):
-                scale_sigma, measured_by = min(walk, self.config.max_odometry_scale_sigma), "loops"
+        if scale_sigma is None:
+            scale_sigma, measured_by = self.measured_scale_walk() or (None, None)
         shares = self.loop_shares()
         for stage in stages:
             graph = gtsam.NonlinearFactorGraph()
@@ -474,6 +507,11 @@ class PoseGraph:
         opt = gtsam.GncLMOptimizer(graph, values, params)
         opt.setInlierCostThresholdsAtProbability(self.config.gnc_inlier_probability)
         return opt.optimize()
+
+    def loop_agreement(self) -> int:
+        """How many loops the current poses agree with: each loop's residual within its chi-square bound
+        (``gnc_inlier_probability``, 7 degrees of freedom, the loop's own sigmas)."""
+        return int(sum(self.loop_weights("gnc")))
 
     def loop_weights(self, kernel: str | None = None) -> list[float]:
         """Robust weight (0..1) of every loop edge at the current poses under ``kernel`` (default:

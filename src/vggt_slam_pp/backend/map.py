@@ -101,12 +101,14 @@ class Map:
         if e is not None and e.degraded:
             self.degraded_edges.add(e.prev)
         if e is not None:
+            cameras = e.method in ("pose_scale", "joint", "anchored") and not e.degraded
             self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
-                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded,
-                                                               e.method in ("pose_scale", "joint", "anchored") and not e.degraded,
+                                     self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded, cameras,
                                                                e.relative_residual),
                                      "odometry",
-                                     {"residual": e.residual, "degraded": e.degraded}))
+                                     # its scale sigma the prior walk, which a measured one replaces (not one the
+                                     # shared cameras measured: GraphConfig.odometry_scale_sigma_cameras)
+                                     {"residual": e.residual, "degraded": e.degraded, "prior_scale": not cameras}))
         if len(points):
             self._remember_extent(sid, points)
         return T

@@ -1193,7 +1193,10 @@ def test_a_loop_needs_a_cycle_consistent_partner(tmp_path):
 def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_degraded(tmp_path):
     """An edge a sparse backbone measured from the shared keyframes' cameras is 0.05-0.45 % of the step
     off (castle walk, EuRoC), not the 2 % a dense backbone's point alignment is given; a degraded one keeps
-    the wide sigma; a joint link's rotation and scale sigma are its own relative residual."""
+    the wide sigma; a joint link's rotation and scale sigma are its own relative residual. The points' misfit
+    counts whole where the edge was not fitted to them, over the square root of their number where it was; an
+    extrapolated edge (no residual) is a linked one's motion sigmas inflated, not a translation as long as its
+    step."""
     from vggt_slam_pp.backend.map import Map
     from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
     from vggt_slam_pp.frontend.types import OdometryEdge
@@ -1205,11 +1208,12 @@ def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_d
     for i, (method, degraded) in enumerate((("points", False), ("pose_scale", False), ("pose_scale", True)), 1):
         m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, method, degraded), np.zeros((0, 3)))
     trans = {e.j: e.sigmas[3] for e in m.graph.edges}
-    assert np.isclose(trans[1], 0.02 * 10 + 0.01) and np.isclose(trans[2], 0.002 * 10 + 0.01)
-    assert np.isclose(trans[3], 10 * trans[1])  # degraded: no measured link, the wide sigma inflated
+    assert np.isclose(trans[1], 0.02 * 10 + 0.01 / np.sqrt(100))  # fitted to its 100 points
+    assert np.isclose(trans[2], 0.002 * 10 + 0.01)  # from the cameras: the points' misfit is its own error
+    assert np.isclose(trans[3], 3 * (0.02 * 10 + 0.01))  # degraded: the wide sigma, inflated
     # its scale is a guess (median depths): all but free; its rotation comes from the previous submap's cameras
     deg, ok = m.graph.edges[2].sigmas, m.graph.edges[0].sigmas
-    assert np.isclose(deg[6], 100 * ok[6]) and np.isclose(deg[0], 10 * ok[0])
+    assert np.isclose(deg[6], 100 * ok[6]) and np.isclose(deg[0], 3 * ok[0])
     # a joint link measures its own relative uncertainty: its rotation and log-scale sigma, floored at 0.2 %
     for i, relative in ((4, 0.006), (5, 0.0005)):
         m.add_submap(i, OdometryEdge(i - 1, i, step, 0.01, 1.0, 100, "joint", relative_residual=relative),
@@ -1221,6 +1225,14 @@ def test_odometry_from_the_shared_cameras_is_weighted_by_their_accuracy_unless_d
     assert np.allclose(sig[1][[0, 1, 2]], 0.01) and np.isclose(sig[1][6], 0.05)  # from points: the prior scale walk
     prior = {e.j: e.info["prior_scale"] for e in m.graph.edges}  # a measured walk replaces the prior's 5 % ...
     assert prior == {1: True, 2: False, 3: True, 4: False, 5: False}  # ... not a scale the cameras measured
+    # extrapolated (odometry.extrapolated_edge: no residual): the shared keyframe's camera in both submaps, a
+    # linked edge's rotation and translation sigmas (0.02 of the step) inflated; a non-degraded edge whose residual
+    # is unknown still gets one as large as its step
+    m.add_submap(6, OdometryEdge(5, 6, step, float("nan"), 0.0, 3, "extrapolated", True), np.zeros((0, 3)))
+    m.add_submap(7, OdometryEdge(6, 7, step, float("nan"), 0.0, 100, "pose_scale"), np.zeros((0, 3)))
+    sig = {e.j: e.sigmas for e in m.graph.edges}
+    assert np.allclose(sig[6], [0.03] * 3 + [3 * (0.02 * 10 + 1e-4 * 10)] * 3 + [5.0])  # (a 1e-4 floor)
+    assert np.isclose(sig[7][3], 0.002 * 10 + 10.0)
 
 
 def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_relative_scale(tmp_path):

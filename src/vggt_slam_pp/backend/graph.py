@@ -61,7 +61,7 @@ class GraphConfig:
     # there: this, a measured walk only widening it (as before session 61)
     min_odometry_scale_sigma: float = 0.01  # a measured walk is taken as at least this (the heights' and loops' own
     # errors, 1-2 %, are as large as what they would measure below it)
-    odometry_trans_sigma_rel: float = 0.02  # of the relative motion length (plus the residual)
+    odometry_trans_sigma_rel: float = 0.02  # of the step, plus the residual (PoseGraph.odometry_sigmas)
     odometry_trans_sigma_rel_cameras: float = 0.002  # the same for an edge from the shared keyframes' cameras
     # (a sparse backbone, "pose_scale" / "joint" / "anchored"), measured 0.05-0.45 % of the step on the castle walk and
     # EuRoC
@@ -70,10 +70,12 @@ class GraphConfig:
     # sigma, at least this much
     degraded_inflation: float = 100.0  # a degraded (extrapolated) odometry edge's scale sigma times this: its scale is
     # a guess (the two submaps' median depths)
-    degraded_motion_inflation: float = 10.0  # ... and its rotation and translation sigmas times this: they come from
-    # the previous submap's cameras or their motion (extrapolated edges of the realistic profile, 94 in 80 runs: 0.39
-    # deg and 1.4 % of the step off the truth (median), as close as linked edges; at 100x too, a scale set by heights
-    # or loops turned the rest of the run about them: docs/experiments.md, session 54)
+    degraded_motion_inflation: float = 3.0  # ... and its rotation and translation sigmas (a linked edge's, without a
+    # residual) times this: they are the shared keyframe's camera in both submaps (odometry.extrapolated_edge), not
+    # its fit (extrapolated edges of the realistic profile, 94 in 80 runs: 0.39 deg and 1.4 % of the step off the
+    # truth, median, as close as linked edges; at 100x, a scale set by heights or loops turned the rest of the run
+    # about them, session 54; at 10x over a translation sigma as large as the step, the graph was cut in two there:
+    # docs/experiments.md, session 62)
     loop_rot_sigma: float = 0.02
     loop_scale_sigma: float = 0.02
     loop_trans_sigma_tiles: float = 0.02  # floor of a loop's translation sigma, in tiles (ICP along a
@@ -172,19 +174,27 @@ class PoseGraph:
         self.poses[i] = np.asarray(T_world_submap, float).copy()
 
     def odometry_sigmas(self, T_ij: np.ndarray, residual: float, degraded: bool = False,
-                        from_cameras: bool = False, relative: float = float("nan")) -> np.ndarray:
-        """Sigmas [7] of an odometry edge ``T_ij`` with its fit ``residual`` (i's units): translation
-        ``odometry_trans_sigma_rel`` of the step plus the residual; ``from_cameras``: an edge measured from
-        the shared keyframes' cameras (a sparse backbone's), ``odometry_trans_sigma_rel_cameras`` of it, and
-        ``odometry_scale_sigma_cameras`` in scale.
+                        from_cameras: bool = False, relative: float = float("nan"), fitted: int = 0) -> np.ndarray:
+        """Sigmas [7] of an odometry edge ``T_ij`` with its ``residual`` (the shared points' RMS misfit under it,
+        i's units): translation ``odometry_trans_sigma_rel`` of the step (the errors the points share: their
+        depth's) plus the residual; ``fitted`` > 0: ``T_ij`` was fitted to that many of those points, so their
+        misfit is the noise the fit averaged, and counts as ``residual / sqrt(fitted)`` (a camera-measured edge's
+        points were not fitted: their misfit is its error at their distance, and counts whole).
+        ``from_cameras``: an edge measured from the shared keyframes' cameras (a sparse backbone's),
+        ``odometry_trans_sigma_rel_cameras`` of it, and ``odometry_scale_sigma_cameras`` in scale.
         ``relative``: the edge's own relative uncertainty, when it measures one (rotation and log-scale sigma,
-        at least ``odometry_relative_sigma_floor``; otherwise ``odometry_rot_sigma`` / ``odometry_scale_sigma``)."""
+        at least ``odometry_relative_sigma_floor``; otherwise ``odometry_rot_sigma`` / ``odometry_scale_sigma``).
+        ``degraded``: the rotation and translation sigmas times ``degraded_motion_inflation`` (with no residual
+        term when it is unknown: an extrapolated edge's motion is a camera's), the scale's ``degraded_inflation``."""
         c = self.config
         s, _, t = decompose_sim3(T_ij)
         step = float(np.linalg.norm(t))
-        residual = float(residual) if np.isfinite(residual) else max(step, 1.0)  # unknown: as large as the step
+        if not np.isfinite(residual):
+            residual = 0.0 if degraded else max(step, 1.0)  # unknown: as large as the step
+        elif fitted > 0:
+            residual = float(residual) / np.sqrt(fitted)
         rel = c.odometry_trans_sigma_rel_cameras if from_cameras else c.odometry_trans_sigma_rel
-        trans = rel * step + max(residual, 1e-4 * max(step, 1e-3), 1e-9)
+        trans = rel * step + max(float(residual), 1e-4 * max(step, 1e-3), 1e-9)
         rot, scale = c.odometry_rot_sigma, c.odometry_scale_sigma_cameras if from_cameras else c.odometry_scale_sigma
         if np.isfinite(relative):
             rot = scale = max(float(relative), c.odometry_relative_sigma_floor)

@@ -104,7 +104,8 @@ class Map:
             cameras = e.method in ("pose_scale", "joint", "anchored") and not e.degraded
             self.graph.add_edge(Edge(e.prev, sid, e.T_prev_curr,
                                      self.graph.odometry_sigmas(e.T_prev_curr, e.residual, e.degraded, cameras,
-                                                               e.relative_residual),
+                                                               e.relative_residual,
+                                                               e.num_correspondences if e.method == "points" else 0),
                                      "odometry",
                                      # its scale sigma the prior walk, which a measured one replaces (not one the
                                      # shared cameras measured: GraphConfig.odometry_scale_sigma_cameras)

@@ -1605,6 +1605,31 @@ def test_loops_are_checked_against_the_pose_ground_truth_of_their_submaps():
     assert [(q, m) for q, m, *_ in _wrong_loops(graph, source, verified=True)] == [(2, 0), (2, 1)]
 
 
+def test_revisit_recall_counts_queries_whose_candidates_hold_a_true_match():
+    """``_revisit_recall``: a revisit query shares >= 0.3 of its footprint with a submap >= 3 before it; it is
+    found when a candidate it registered is such a submap (by place recognition or proximity), verified when
+    that candidate has a relative pose. A recent neighbour or a submap it shares too little with does not count."""
+    from vggt_slam_pp.benchmarks import _pooled_recall, _revisit_recall
+
+    overlap = np.zeros((8, 8))
+    overlap[5, 0] = overlap[6, 1] = overlap[7, 2] = 0.6  # three revisit queries
+    overlap[4, 3] = overlap[7, 5] = 0.9  # recent neighbours: not revisits
+    overlap[6, 0] = 0.2  # too little ground in common
+    candidates = [{"query": 5, "match": 0, "source": "retrieval", "T_match_query": np.eye(4).tolist()},
+                  {"query": 6, "match": 0, "source": "retrieval"},  # a wrong candidate
+                  {"query": 6, "match": 1, "source": "proximity"},  # found, not verified
+                  {"query": 7, "match": 5, "source": "proximity", "T_match_query": np.eye(4).tolist()},  # recent
+                  {"query": 4, "match": 0, "source": "retrieval"}]  # not a revisit
+    r = _revisit_recall({"loop_candidates": candidates}, overlap)
+    assert r["revisit_queries"] == 3
+    assert np.isclose(r["candidate_recall"], 2 / 3) and np.isclose(r["candidate_recall_retrieval"], 1 / 3)
+    assert np.isclose(r["verified_recall"], 1 / 3)
+    none = _revisit_recall({"loop_candidates": []}, np.zeros((4, 4)))
+    assert none["revisit_queries"] == 0 and none["candidate_recall"] is None
+    pooled = _pooled_recall([r, none, {**r, "revisit_queries": 1, "candidate_recall": 0.0}])
+    assert pooled["revisit_queries"] == 4 and np.isclose(pooled["candidate_recall"], 2 / 4)
+
+
 def test_a_recording_beside_a_map_starts_levelled_on_the_maps_ground(tmp_path, rng):
     """A second recording whose camera is mounted at another pitch and height: its first submap is turned
     and lifted so that its own ground lies on the map's ground plane (its heading stays unknown)."""

@@ -202,25 +202,33 @@ def _wrong_loops(graph: dict, first, second=None, n_map: int = 0, max_deg: float
     return wrong
 
 
-def _revisit_recall(graph: dict, overlap: np.ndarray, threshold: float = 0.3, recent: int = 3) -> dict:
-    """How the back-end's loop candidates carry the revisits. A revisit query is a submap that shares at least
-    ``threshold`` of its ground footprint at the ground truth (``overlap``, :func:`_overlap_matrix`) with an
-    earlier submap at least ``recent`` before it; of those, the share with a true match (such an earlier
-    submap) among all the candidates it registered (``candidate_recall``: place recognition and proximity
+def _true_matches(overlap: np.ndarray, query: int, threshold: float, exclude_recent: int) -> set[int]:
+    """The earlier submaps that ``query`` revisits: those before its ``exclude_recent`` most recent predecessors
+    (which retrieval leaves out) that share at least ``threshold`` of the footprint with it at the ground truth
+    (``overlap``, :func:`_overlap_matrix`). Empty: ``query`` is no revisit."""
+    return {j for j in range(max(0, query - exclude_recent)) if overlap[query, j] >= threshold}
+
+
+def _revisit_recall(graph: dict, overlap: np.ndarray, threshold: float = 0.3, exclude_recent: int = 2) -> dict:
+    """How the back-end's loop candidates carry the revisits (queries with :func:`_true_matches`): the share with
+    a true match among all the candidates it registered (``candidate_recall``: place recognition and proximity
     together), among place recognition's alone (``candidate_recall_retrieval``), and verified
     (``verified_recall``: a candidate with a relative pose, accepted or not)."""
     by_query: dict[int, list] = {}
     for c in graph["loop_candidates"]:
         by_query.setdefault(int(c["query"]), []).append(c)
-    revisits = [q for q in range(recent, len(overlap)) if overlap[q, :q - recent + 1].max() >= threshold]
     hits = {"candidate_recall": 0, "candidate_recall_retrieval": 0, "verified_recall": 0}
-    for q in revisits:
-        true = [c for c in by_query.get(q, []) if c["match"] <= q - recent and overlap[q, c["match"]] >= threshold]
+    revisits = 0
+    for q in range(len(overlap)):
+        true_matches = _true_matches(overlap, q, threshold, exclude_recent)
+        if not true_matches:
+            continue
+        revisits += 1
+        true = [c for c in by_query.get(q, []) if c["match"] in true_matches]
         hits["candidate_recall"] += bool(true)
         hits["candidate_recall_retrieval"] += any(c.get("source") == "retrieval" for c in true)
         hits["verified_recall"] += any("T_match_query" in c for c in true)
-    return {"revisit_queries": len(revisits),
-            **{k: v / len(revisits) if revisits else None for k, v in hits.items()}}
+    return {"revisit_queries": revisits, **{k: v / revisits if revisits else None for k, v in hits.items()}}
 
 
 def _overlap_matrix(footprints: list[set]) -> np.ndarray:
@@ -283,7 +291,7 @@ def bench_covisibility(scenes=("figure8", "loop", "kitti00"), frames: int = 600,
         revisit, hit, hit_votes, hit_cands, cand_total, cand_ok = 0, 0, 0, 0, 0, 0
         per_query = BackendConfig().candidates_per_query
         for i, out in enumerate(outputs):
-            true = {j for j in range(max(0, i - excl)) if overlap[i, j] >= overlap_threshold}
+            true = _true_matches(overlap, i, overlap_threshold, excl)
             if not true:
                 continue
             revisit += 1
@@ -381,7 +389,7 @@ def bench_loops(scenes=("figure8", "loop", "kitti00", "kitti07"), trajectories=(
             "loops_accepted": on["loops_accepted"], "loops_rejected": on["loops_rejected"],
             "false_loops": len(false), "false_loop_pairs": false,
             # issue 18: do the candidates carry the revisits under drift, and how many of them verify
-            **_revisit_recall(graph, overlap, overlap_threshold),
+            **_revisit_recall(graph, overlap, overlap_threshold, config.backend_config.covisibility.index.exclude_recent),
             # beside the footprint rule: accepted loops more than 5 deg or 5 m off the ground truth's relative pose
             "loops_off_truth": _wrong_loops(graph, source),
             # what verification alone lets through, before the consistency gate: every verified candidate

@@ -1258,6 +1258,34 @@ def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_rela
     assert m.height_near(3) == 2.0  # its own first
 
 
+def test_a_height_whose_cameras_spread_weighs_in_the_graph_but_gives_loops_no_cue(tmp_path, rng):
+    """A car's submap spans tens of metres, and a backbone's pose error grows along it: its cameras' heights
+    spread 10-20 % about a median that is still its scale. That height joins the pose graph (soft, its noise
+    measured there); the loops' scale cue, a hard constraint, keeps to steadier heights (a neighbour's)."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.backend.search import camera_height, camera_heights
+    from vggt_slam_pp.frontend.types import OdometryEdge
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    place = _place(rng)
+    cams = np.c_[np.linspace(5, 25, 8), np.full(8, 15.0), np.full(8, 1.6)]
+    cams[:, 2] += np.array([0.0, 0.05, -0.1, 0.15, -0.2, 0.25, -0.3, 0.35])  # error growing along the submap
+    h, spread = camera_heights(place, cams, [0.0, 0.0, 1.0])
+    assert 0.1 < spread < 0.2 and abs(h / 1.6 - 1) < 0.05
+    assert camera_height(place, cams, [0.0, 0.0, 1.0]) is None  # over the cue's spread (0.1)
+    assert camera_heights(place, cams[:1], [0.0, 0.0, 1.0]) is None  # one camera: no spread to judge
+
+    m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / "s"), Gallery(HogEncoder(), CovisibilityConfig()))
+    m.add_submap(0, None, np.zeros((0, 3)))
+    m.add_submap(1, OdometryEdge(0, 1, make_sim3(0.5, np.eye(3), np.array([10.0, 0.0, 0.0])), 0.01, 1.0, 100,
+                                 "points"), np.zeros((0, 3)))
+    m.set_height(0, 1.6)
+    assert m.set_height(1, 3.5, cue=False)
+    assert m.graph.heights[1][0] == 3.5  # a height factor in the graph
+    assert m.height(1) is None and np.isclose(m.height_near(1), 3.2)  # the cue: its neighbour's, 1.6 m in half units
+
+
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
     """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
     scale change is not held against it when the cameras' heights measured that scale (monocular submaps

@@ -39,7 +39,7 @@ from vggt_slam_pp.backend.loops import PENDING, LoopCloser
 from vggt_slam_pp.backend.map import Map, subsample
 from vggt_slam_pp.backend.places import CovisibilityStage, Gallery, camera_depth
 from vggt_slam_pp.backend.registration import LoopResult
-from vggt_slam_pp.backend.search import camera_height
+from vggt_slam_pp.backend.search import camera_heights
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import PlaneConfig
 from vggt_slam_pp.errors import DemError
@@ -237,14 +237,21 @@ class Backend:
                 self.config.graph.height_factors or c.height_cue):
             return
         s, R, _ = decompose_sim3(m.graph.poses[sid])
-        h = camera_height(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,
-                          c.max_up_tilt_deg, c.height_cue_max_spread, seed=sid)
-        if h is None or h * s < c.height_cue_min_tiles * grid.tile_size:  # a ratio of tiny heights is noise
+        measured = camera_heights(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,
+                                  c.max_up_tilt_deg, seed=sid)
+        if measured is None:
+            return
+        h, spread = measured
+        # a ratio of tiny heights is noise; heights whose cameras spread more than the loops' cue allows only weigh
+        # in the graph (GraphConfig.height_max_spread), where the variogram measures their noise
+        cue = spread <= c.height_cue_max_spread
+        if (not cue and (spread > self.config.graph.height_max_spread or not self.config.graph.height_factors)) \
+                or h * s < c.height_cue_min_tiles * grid.tile_size:
             return
         # the cameras' altitude above the DEM plane as odometry placed them (not the graph: heights move it)
         T = m.odometry_poses[sid]
         altitude = float(np.median((transform_points(T, camera_centers) - grid.plane.origin) @ grid.plane.normal))
-        if not m.set_height(sid, h, altitude):
+        if not m.set_height(sid, h, altitude, cue=cue):
             return
         if self.config.graph.height_factors and m.segment[sid] != sid and m.graph.scale_noise() is not None:
             t0 = time.perf_counter()

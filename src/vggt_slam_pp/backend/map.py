@@ -72,6 +72,7 @@ class Map:
         self._altitude: dict[int, tuple[tuple[int, float, float] | None, float, float, int]] = {}
         self.flying: set[int] = set()  # segments whose cameras' height follows their altitude: no height cue
         self._set_aside: dict[int, dict[int, float]] = {}  # a flying segment's heights, out of the graph meanwhile
+        self.graph_only_heights: set[int] = set()  # submaps whose height weighs in the graph but gives no loop cue
 
     # -- building it --------------------------------------------------------------------------------
     def add_submap(self, submap_id: int, odometry: OdometryEdge | None, points: np.ndarray,
@@ -115,9 +116,10 @@ class Map:
         return T
 
     def height(self, sid: int) -> float | None:
-        """Submap ``sid``'s cameras' height above its own ground, its units (None: not measured or no cue)."""
+        """Submap ``sid``'s cameras' height above its own ground, its units, for loops' scale cue (None: not
+        measured, no cue, or one that weighs only in the graph: :attr:`graph_only_heights`)."""
         h = self.graph.heights.get(sid)
-        return h[0] if h is not None else None
+        return h[0] if h is not None and sid not in self.graph_only_heights else None
 
     def height_near(self, sid: int, reach: int = 2) -> float | None:
         """Submap ``sid``'s cameras' height, its units: its own, or, when it has none (its cameras' heights
@@ -153,7 +155,7 @@ class Map:
         measured = self.graph.height_variogram(self.segment[query]) is not None
         return self.height_near(query), self.height_near(match), measured
 
-    def set_height(self, sid: int, height: float, altitude: float | None = None) -> bool:
+    def set_height(self, sid: int, height: float, altitude: float | None = None, cue: bool = True) -> bool:
         """Submap ``sid``'s cameras stand ``height`` (its units) above its ground: a height factor in the
         graph, one world height per recording (segment). Returns whether it is in the graph now.
 
@@ -169,8 +171,11 @@ class Map:
         on all of them: a car whose first few pairs happened to follow its climb gets its heights back, those set
         aside meanwhile included (realistic block loop and KITTI 07-driven worlds, seed 15: the unexplained share
         ``sum (dlog H - climb)^2 / sum dlog H^2`` was 0.48 / 0.35 at pairs 5-6, 0.8-13 from pair 7 on; decided once
-        and for all, their heights never came back: ATE reduction -33.5 / 0.0 %)."""
+        and for all, their heights never came back: ATE reduction -33.5 / 0.0 %). ``cue`` False: the height weighs
+        in the graph but gives its loops no scale cue (:meth:`height`)."""
         seg = self.segment[sid]
+        if not cue:
+            self.graph_only_heights.add(sid)
         climbs = self._climbs(sid, height, altitude) if altitude is not None else seg in self.flying
         if climbs:
             if seg not in self.flying:

@@ -118,11 +118,20 @@ def own_up(points: np.ndarray, up_guess: np.ndarray, unit: float, max_tilt_deg: 
 def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up_guess: np.ndarray,
                   max_tilt_deg: float = 15.0, max_spread: float = 0.1, inlier: float = 0.1, seed: int = 0
                   ) -> float | None:
-    """The height of a submap's cameras above its own ground (its frame's units): the median distance of
-    the camera centres [S,3] to the submap's ground plane (:func:`own_ground` of ``points`` [N,3] near
-    ``up_guess``, inliers within ``inlier`` x a first guess of the height: the cameras over the 20th
-    percentile of the points). None when there is no ground plane, when the cameras do not keep one
-    height (robust spread, 1.48 MAD / median, over ``max_spread``), or with fewer than two cameras.
+    """The height of :func:`camera_heights`, None where the cameras do not keep one height (a spread over
+    ``max_spread``)."""
+    measured = camera_heights(points, camera_centers, up_guess, max_tilt_deg, inlier, seed)
+    return measured[0] if measured is not None and measured[1] <= max_spread else None
+
+
+def camera_heights(points: np.ndarray, camera_centers: np.ndarray | None, up_guess: np.ndarray,
+                   max_tilt_deg: float = 15.0, inlier: float = 0.1, seed: int = 0) -> tuple[float, float] | None:
+    """``(height, spread)``: the height of a submap's cameras above its own ground (its frame's units), the
+    median distance of the camera centres [S,3] to the submap's ground plane (:func:`own_ground` of
+    ``points`` [N,3] near ``up_guess``, inliers within ``inlier`` x a first guess of the height: the cameras
+    over the 20th percentile of the points), and how far the cameras' own heights spread about it (robust,
+    1.48 MAD / median: 0 for cameras at one height). None when there is no ground plane or with fewer than
+    two cameras.
 
     A camera carried at a steady height (a car, a walker, a robot) gives each submap's scale directly: the
     ratio of two submaps' heights is their relative scale, however far odometry's scale has drifted
@@ -144,9 +153,9 @@ def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up_gues
         return None
     h = C @ ground[0] - ground[1]
     mid = float(np.median(h))
-    if not mid > 0 or 1.4826 * float(np.median(np.abs(h - mid))) > max_spread * mid:
+    if not mid > 0:
         return None
-    return mid
+    return mid, 1.4826 * float(np.median(np.abs(h - mid))) / mid
 
 
 def hue_vectors(colors: np.ndarray | None, n: int, full_saturation: float = 0.08, min_value: int = 24

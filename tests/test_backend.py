@@ -1260,8 +1260,8 @@ def test_a_submap_without_its_own_height_takes_its_neighbours_through_their_rela
 
 def test_a_height_whose_cameras_spread_weighs_in_the_graph_but_gives_loops_no_cue(tmp_path, rng):
     """A car's submap spans tens of metres, and a backbone's pose error grows along it: its cameras' heights
-    spread 10-20 % about a median that is still its scale. That height joins the pose graph (soft, its noise
-    measured there); the loops' scale cue, a hard constraint, keeps to steadier heights (a neighbour's)."""
+    spread 10-20 %. Where configured (GraphConfig.height_max_spread), such a height joins the pose graph (soft, its
+    noise measured there); the loops' scale cue, a hard constraint, keeps to steadier heights (a neighbour's)."""
     from vggt_slam_pp.backend.map import Map
     from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
     from vggt_slam_pp.backend.search import camera_height, camera_heights

@@ -84,9 +84,9 @@ class GraphConfig:
     height_max_spread: float = 0.1  # a submap's cameras' height joins the graph while their own heights spread
     # (search.camera_heights) at most this much; only heights within RegistrationConfig.height_cue_max_spread (0.1)
     # also give loops their scale cue. A car's submap of tens of metres spreads 0.1-0.2 under the realistic profile
-    # (pose error grows along it) about a median as accurate as a steadier submap's; at 0.2 realistic KITTI 00-driven
+    # (pose error grows along it), and most of KITTI 00-driven's lost their heights; at 0.2 realistic KITTI 00-driven
     # seeds 0-7 went from median 78.6 % / worst 0.0 % to 84.7 / 76.8 %, but seed 0 accepted a look-alike 17 m along
-    # the street: not the default yet (docs/experiments.md, session 64)
+    # the street and a hand-held held-out run fell 35.8 -> -23.0 %: not the default (docs/experiments.md, session 64)
     height_kernel_width: float = 2.0  # Cauchy width (whitened) of the height factors: a camera that changes
     # its height between submaps (a drone, a walker climbing stairs) loses its pull
     height_lags: int = 6  # the scale noise is measured over lags 1..6 submaps (PoseGraph.scale_noise)

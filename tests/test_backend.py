@@ -1286,6 +1286,30 @@ def test_a_height_whose_cameras_spread_weighs_in_the_graph_but_gives_loops_no_cu
     assert m.height(1) is None and np.isclose(m.height_near(1), 3.2)  # the cue: its neighbour's, 1.6 m in half units
 
 
+def test_the_back_end_takes_a_spread_height_into_the_graph_only_within_its_limit(tmp_path, rng):
+    """``GraphConfig.height_max_spread``: the back-end measures each new submap's height; one whose cameras spread
+    over the loop cue's limit (0.1) but within this one weighs in the graph alone, beyond it (or at the default,
+    the cue's own limit) it is dropped as before; a steady one is a cue as well."""
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.frontend.types import OdometryEdge
+
+    place = _place(rng)
+    steady = np.c_[np.linspace(5, 25, 8), np.full(8, 15.0), np.full(8, 1.6)]
+    spread = steady.copy()
+    spread[:, 2] += np.array([0.0, 0.05, -0.1, 0.15, -0.2, 0.25, -0.3, 0.35])  # 0.1-0.2 spread
+    outcomes = {}
+    for limit in (0.1, 0.2):
+        backend = Backend(BackendConfig(graph=GraphConfig(height_max_spread=limit)), SubmapStore(tmp_path / str(limit)))
+        m = backend.map
+        backend.map.gallery.ensure_grid(place, steady, None)
+        for sid, cams in enumerate((steady, spread)):
+            m.add_submap(sid, None if sid == 0 else OdometryEdge(0, 1, np.eye(4), 0.01, 1.0, 100, "points"), place)
+            backend._measure_height(sid, place, cams)
+        outcomes[limit] = (sorted(m.graph.heights), m.height(0) is not None, m.height(1) is not None)
+    assert outcomes[0.1] == ([0], True, False)  # the default: as before, no height where the cameras spread
+    assert outcomes[0.2] == ([0, 1], True, False)  # in the graph, but no cue
+
+
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
     """A loop without a partner is taken when its correction is within one sigma of the drift model. Its
     scale change is not held against it when the cameras' heights measured that scale (monocular submaps

@@ -242,10 +242,11 @@ class Backend:
         if measured is None:
             return
         h, spread = measured
-        # a ratio of tiny heights is noise; heights whose cameras spread more than the loops' cue allows only weigh
-        # in the graph (GraphConfig.height_max_spread), where the variogram measures their noise
+        # heights whose cameras spread more than the loops' cue allows weigh only in the graph (within
+        # GraphConfig.height_max_spread), where the variogram measures their noise; a ratio of tiny heights is noise
+        g = self.config.graph
         cue = spread <= c.height_cue_max_spread
-        if (not cue and (spread > self.config.graph.height_max_spread or not self.config.graph.height_factors)) \
+        if spread > max(c.height_cue_max_spread, g.height_max_spread if g.height_factors else 0.0) \
                 or h * s < c.height_cue_min_tiles * grid.tile_size:
             return
         # the cameras' altitude above the DEM plane as odometry placed them (not the graph: heights move it)

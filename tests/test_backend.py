@@ -1003,12 +1003,24 @@ def test_backend_failure_surfaces_and_outputs_remain(loop_sequence, tmp_path, mo
     assert 0 < len(corrected) < len(odometry)
 
 
-def test_worker_process_matches_inline_and_publishes_snapshots(loop_sequence, tmp_path):
+def test_worker_process_matches_inline_and_publishes_snapshots(loop_sequence, tmp_path, monkeypatch):
+    from vggt_slam_pp.backend.backend import Backend
     from vggt_slam_pp.io import open_source
     from vggt_slam_pp.pipeline import run
 
+    measured = []  # (points, cameras, points per camera) of each height the inline back-end measured
+    original = Backend._measure_height
+
+    def spy(self, sid, points, camera_centers, points_per_camera=None):
+        measured.append((len(points), len(camera_centers), points_per_camera))
+        return original(self, sid, points, camera_centers, points_per_camera)
+
+    monkeypatch.setattr(Backend, "_measure_height", spy)
     reports = {mode: run(open_source(loop_sequence), _small_config(worker=mode), tmp_path / mode)
                for mode in ("inline", "process")}
+    # the pipeline says which of the stored points each keyframe gave: each camera's height above its own
+    assert len(measured) >= reports["inline"]["submaps"]
+    assert all(c is not None and len(c) == s and c.sum() == n for n, s, c in measured)
     assert reports["process"]["backend_mode"] == "process" and reports["inline"]["backend_mode"] == "inline"
     assert reports["process"]["submaps"] == reports["inline"]["submaps"] > 5
     for key in ("ate_rmse", "loops_accepted", "loops_rejected"):
@@ -1308,6 +1320,57 @@ def test_the_back_end_takes_a_spread_height_into_the_graph_only_within_its_limit
         outcomes[limit] = (sorted(m.graph.heights), m.height(0) is not None, m.height(1) is not None)
     assert outcomes[0.1] == ([0], True, False)  # the default: as before, no height where the cameras spread
     assert outcomes[0.2] == ([0, 1], True, False)  # in the graph, but no cue
+
+
+def _keyframes_with_pose_error(rng, place, cams, errors_z, tilt_deg=2.0):
+    """The keyframes of one submap: each camera of ``cams`` [S,3] reconstructs a share of ``place`` [N,3], and
+    its pose error (up by ``errors_z`` [S], tilted about x through the camera by up to ``tilt_deg``) moves
+    the camera and its own points together, as a backbone's does. Returns (points [N,3] in keyframe
+    order, cameras [S,3], points per camera [S])."""
+    parts = np.array_split(place[rng.permutation(len(place))], len(cams))
+    pts, out = [], []
+    for c, part, dz in zip(cams, parts, errors_z, strict=True):
+        R = so3_exp(np.array([np.radians(rng.uniform(-tilt_deg, tilt_deg)), 0.0, 0.0]))
+        pts.append((part - c) @ R.T + c + [0.0, 0.0, dz])
+        out.append(c + [0.0, 0.0, dz])
+    return np.concatenate(pts), np.array(out), np.array([len(p) for p in parts])
+
+
+def test_each_camera_above_its_own_points_ground_keeps_the_height_that_pose_error_spreads(tmp_path, rng):
+    """A backbone's pose error grows along a long car submap and moves each keyframe's points with its
+    camera: above the submap's common ground the cameras spread, above each one's own points they keep
+    the height (search.camera_heights with the points' keyframes); the back-end takes it with the points per
+    camera the pipeline sends, and a flying camera still spreads."""
+    from vggt_slam_pp.backend.backend import Backend, BackendConfig
+    from vggt_slam_pp.backend.search import camera_heights
+    from vggt_slam_pp.frontend.types import OdometryEdge
+
+    place = _place(rng)
+    cams = np.c_[np.linspace(5, 25, 8), np.full(8, 15.0), np.full(8, 1.6)]
+    err = np.array([0.0, 0.05, -0.1, 0.15, -0.2, 0.25, -0.3, 0.35])
+    pts, moved, counts = _keyframes_with_pose_error(rng, place, cams, err)
+    labels = np.repeat(np.arange(8), counts)
+    common = camera_heights(pts, moved, [0.0, 0.0, 1.0])
+    assert common is not None and common[1] > 0.1  # the common ground: spread over the cue's limit
+    h, spread = camera_heights(pts, moved, [0.0, 0.0, 1.0], point_camera=labels)
+    assert abs(h - 1.6) < 0.03 and spread < 0.02
+    flying = cams.copy()
+    flying[:, 2] = np.linspace(1.0, 4.0, 8)
+    pts_f, moved_f, counts_f = _keyframes_with_pose_error(rng, place, flying, err)
+    assert camera_heights(pts_f, moved_f, [0.0, 0.0, 1.0], point_camera=np.repeat(np.arange(8), counts_f))[1] > 0.3
+    few = np.zeros_like(labels)  # one camera with points of its own: the common ground
+    assert np.isclose(camera_heights(pts, moved, [0.0, 0.0, 1.0], point_camera=few)[0], common[0])
+    with pytest.raises(BackendError, match="labels"):
+        camera_heights(pts, moved, [0.0, 0.0, 1.0], point_camera=labels[1:])
+
+    backend = Backend(BackendConfig(), SubmapStore(tmp_path / "s"))
+    backend.map.gallery.ensure_grid(place, cams, None)
+    for sid, per_camera in enumerate((None, counts, counts[1:])):  # unknown, known, inconsistent
+        backend.map.add_submap(sid, None if sid == 0 else OdometryEdge(sid - 1, sid, np.eye(4), 0.01, 1.0, 100,
+                                                                       "points"), pts)
+        backend._measure_height(sid, pts, moved, per_camera)
+    assert sorted(backend.map.graph.heights) == [1]
+    assert abs(backend.map.height(1) - 1.6) < 0.03
 
 
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):
@@ -2225,3 +2288,32 @@ def test_heights_give_no_scale_when_the_cameras_climb_with_them(tmp_path, rng):
             assert car.flying == {0} and not car.graph.heights and car.height_near(6) is None
     assert kept[-1] and not car.flying and sorted(car.graph.heights) == list(range(m))
     assert car.height(3) == pytest.approx(1.6 * scale[3])  # those set aside while it seemed to climb, back
+
+
+def test_heights_that_follow_the_altitude_in_level_give_no_scale(tmp_path, rng):
+    """A drone climbing slowly from 0.7 to 2.1 m: between neighbours its heights change less by the climb than by
+    the scale odometry gets wrong at each submap (6 %), and the pairwise test reads them as a car's; their levels
+    follow the altitude, and the recording's heights leave the graph. A car's heights wander with odometry's
+    scale while its altitude keeps to the road: they stay."""
+    from vggt_slam_pp.backend.map import Map
+    from vggt_slam_pp.backend.places import CovisibilityConfig, Gallery
+    from vggt_slam_pp.frontend.types import OdometryEdge
+    from vggt_slam_pp.retrieval.encoders import HogEncoder
+
+    def recording(name, altitude, height):
+        m = Map(PoseGraph(GraphConfig()), SubmapStore(tmp_path / name), Gallery(HogEncoder(), CovisibilityConfig()))
+        for i, (z, h) in enumerate(zip(altitude, height, strict=True)):
+            m.add_submap(i, OdometryEdge(i - 1, i, make_sim3(1.0, np.eye(3), np.array([5.0, 0.0, 0.0])), 0.01, 1.0,
+                                         100, "points") if i else None, np.zeros((0, 3)))
+            m.set_height(i, h, altitude=z)
+        return m
+
+    n = 26
+    climb = np.linspace(0.7, 2.1, n)
+    noise = np.exp(rng.normal(0.0, 0.06, n))  # each submap's height in odometry's units off by its scale error
+    drone = recording("drone", climb, climb * noise)
+    pairs = drone._altitude[0]
+    assert pairs[1] >= 0.5 * pairs[2]  # the changes alone: not explained by the climb
+    assert drone.flying == {0} and not drone.graph.heights
+    car = recording("car", 1.6 + np.cumsum(rng.normal(0.0, 0.05, n)), 1.6 * np.exp(np.cumsum(rng.normal(0, 0.06, n))))
+    assert not car.flying and len(car.graph.heights) == n

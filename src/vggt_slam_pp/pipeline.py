@@ -409,7 +409,8 @@ class _BackendFeeder:
                 p = sm.prediction
                 self.worker.store.put_features(sm.id, features, p.T_cam_submap, p.valid, p.frame_indices)
             edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
-            self.worker.submit(SubmapMessage(sm.id, centres, edge))
+            counts = np.array([len(p) for p in sm.prediction.points])
+            self.worker.submit(SubmapMessage(sm.id, centres, edge, counts))
             self.sent += 1
         self.frontend.release_points(keep_last=1)
         snap = self.worker.latest()

@@ -62,6 +62,7 @@ class SubmapMessage:
     submap_id: int
     camera_centers: np.ndarray  # [S,3] submap frame
     odometry: OdometryEdge | None  # from the previous submap (None for the first)
+    points_per_camera: np.ndarray | None = None  # [S] how many of the stored points (in order) each keyframe gave
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,8 @@ class Backend:
         self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
         self._deferred: deque[tuple[int, np.ndarray, int]] = deque()  # (submap, camera centres, its entry in
         # ``seconds``: a deferred query's time counts for its submap) still to query
-        self._held: list[tuple[int, np.ndarray | None]] = []  # (submap, camera centres): submaps waiting for the DEM
+        self._held: list[tuple[int, np.ndarray | None, np.ndarray | None]] = []  # (submap, camera centres, points
+        # per camera): submaps waiting for the DEM
         # grid (BackendConfig.grid_submaps), in order
         self._version = 0
 
@@ -151,7 +153,7 @@ class Backend:
         m, sid = self.map, msg.submap_id
         points = m.store.get(sid)
         m.add_submap(sid, msg.odometry, points, msg.camera_centers)
-        self._measure_height(sid, points, msg.camera_centers)
+        self._measure_height(sid, points, msg.camera_centers, msg.points_per_camera)
         accepted: list[LoopResult] = []
         first = m.gallery.grid is None
         if len(points) >= 3 and not query and not first:
@@ -167,7 +169,7 @@ class Backend:
                 log.warning("submap %d: no DEM plane from its %d points (a plane needs %d); it joins the map without "
                             "a DEM layer, and the next submap is tried", sid, len(points), need)
             else:
-                self._held.append((sid, msg.camera_centers))
+                self._held.append((sid, msg.camera_centers, msg.points_per_camera))
                 if len(self._held) >= self._grid_submaps():
                     self._fit_grid()
         elif len(points) >= 3:
@@ -200,11 +202,11 @@ class Backend:
         a warning, and the rest wait for the next submap."""
         m, t0 = self.map, time.perf_counter()
         held = self._held
-        points = [m.layer_points(sid) for sid, _ in held]
-        cams = [transform_points(m.graph.poses[sid], c) if c is not None else np.zeros((0, 3)) for sid, c in held]
+        points = [m.layer_points(sid) for sid, _, _ in held]
+        cams = [transform_points(m.graph.poses[sid], c) if c is not None else np.zeros((0, 3)) for sid, c, _ in held]
         # each submap's points against its own cameras (another's may stand nearer: a walk round a courtyard)
         depths = [d for d in map(camera_depth, points, cams) if d is not None]
-        ids = ", ".join(str(sid) for sid, _ in held)
+        ids = ", ".join(str(sid) for sid, _, _ in held)
         try:
             m.gallery.ensure_grid(np.concatenate(points), np.concatenate(cams),
                                   float(np.median(depths)) if depths else None)
@@ -217,28 +219,39 @@ class Backend:
             self.timings["covisibility_s"] += time.perf_counter() - t0
         log.info("DEM plane and tile %.3g fit to submap(s) %s", m.gallery.grid.tile_size, ids)
         self._held = []
-        for sid, centres in held:
+        for sid, centres, per_camera in held:
             pts = m.store.get(sid)
-            self._measure_height(sid, pts, centres)  # the DEM plane exists only now
+            self._measure_height(sid, pts, centres, per_camera)  # the DEM plane exists only now
             accepted = self._query(sid, centres, pts, index=m.index_new)
             if accepted:
                 self._solve_for(sid, accepted)
 
-    def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None) -> None:
-        """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_height`,
-        up guessed from the DEM plane at its pose) as a height factor, and, while the graph uses heights
-        (:meth:`~vggt_slam_pp.backend.graph.PoseGraph.scale_noise`), its scale corrected by it at once (a solve
-        of it alone, its predecessor held). Needs the DEM plane; nothing for a camera that does not
-        keep one height, or when neither the graph (``GraphConfig.height_factors``) nor loops
-        (``RegistrationConfig.height_cue``) use heights."""
+    def _measure_height(self, sid: int, points: np.ndarray, camera_centers: np.ndarray | None,
+                        points_per_camera: np.ndarray | None = None) -> None:
+        """Submap ``sid``'s cameras' height above its own ground (:func:`~vggt_slam_pp.backend.search.camera_heights`,
+        up guessed from the DEM plane at its pose; each camera above its own points' ground where
+        ``points_per_camera`` [S] says which of the stored ``points`` each keyframe gave) as a height factor,
+        and, while the graph uses heights (:meth:`~vggt_slam_pp.backend.graph.PoseGraph.scale_noise`), its
+        scale corrected by it at once (a solve of it alone, its predecessor held). Needs the DEM plane; nothing
+        for a camera that does not keep one height, or when neither the graph (``GraphConfig.height_factors``)
+        nor loops (``RegistrationConfig.height_cue``) use heights."""
         m, c = self.map, self.config.registration
         grid = m.gallery.grid
         if grid is None or camera_centers is None or len(points) < 10 or sid in m.graph.heights or not (
                 self.config.graph.height_factors or c.height_cue):
             return
         s, R, _ = decompose_sim3(m.graph.poses[sid])
-        measured = camera_heights(subsample(points, c.height_max_points), camera_centers, R.T @ grid.plane.normal,
-                                  c.max_up_tilt_deg, seed=sid)
+        keep = np.linspace(0, len(points) - 1, min(len(points), c.height_max_points)).astype(np.int64)  # evenly
+        labels = None  # each point's keyframe: each camera above its own ground (search.camera_heights)
+        if points_per_camera is not None:
+            counts = np.asarray(points_per_camera, np.int64).reshape(-1)
+            if len(counts) == len(camera_centers) and counts.sum() == len(points):
+                labels = np.repeat(np.arange(len(counts)), counts)[keep]
+            else:
+                log.warning("submap %d: %d points per camera for %d cameras and %d points; its height is measured "
+                            "above its common ground", sid, counts.sum(), len(camera_centers), len(points))
+        measured = camera_heights(points[keep], camera_centers, R.T @ grid.plane.normal, c.max_up_tilt_deg,
+                                  seed=sid, point_camera=labels)
         if measured is None:
             return
         h, spread = measured

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vggt_slam_pp.errors import BackendError
 from vggt_slam_pp.geometry.lie import transform_points
 
 
@@ -125,13 +126,24 @@ def camera_height(points: np.ndarray, camera_centers: np.ndarray | None, up_gues
 
 
 def camera_heights(points: np.ndarray, camera_centers: np.ndarray | None, up_guess: np.ndarray,
-                   max_tilt_deg: float = 15.0, inlier: float = 0.1, seed: int = 0) -> tuple[float, float] | None:
+                   max_tilt_deg: float = 15.0, inlier: float = 0.1, seed: int = 0,
+                   point_camera: np.ndarray | None = None, min_camera_points: int = 50
+                   ) -> tuple[float, float] | None:
     """``(height, spread)``: the height of a submap's cameras above its own ground (its frame's units), the
     median distance of the camera centres [S,3] to the submap's ground plane (:func:`own_ground` of
     ``points`` [N,3] near ``up_guess``, inliers within ``inlier`` x a first guess of the height: the cameras
     over the 20th percentile of the points), and how far the cameras' own heights spread about it (robust,
     1.48 MAD / median: 0 for cameras at one height). None when there is no ground plane or with fewer than
     two cameras.
+
+    ``point_camera`` [N] (the keyframe each point was reconstructed from, its index in ``camera_centers``),
+    when known: each camera's height is measured above the ground its own points hold (at least
+    ``min_camera_points`` of them, a plane within ``max_tilt_deg`` of the submap's), wherever two or more
+    cameras have one. A backbone predicts each keyframe's pose and depth together, and the pose error that
+    grows along a submap moves a keyframe's points with it: above the submap's common plane the cameras of
+    a long car submap spread 10-25 % and the median is 3 % off (p90 8 %), above their own grounds they
+    spread 0.5 % and the median is 1.2 % off (p90 2.6 %; docs/experiments.md, session 65). A camera that
+    really changes height still spreads.
 
     A camera carried at a steady height (a car, a walker, a robot) gives each submap's scale directly: the
     ratio of two submaps' heights is their relative scale, however far odometry's scale has drifted
@@ -141,7 +153,13 @@ def camera_heights(points: np.ndarray, camera_centers: np.ndarray | None, up_gue
     units against 1.6-3 %, docs/experiments.md)."""
     C = np.asarray(camera_centers, float).reshape(-1, 3) if camera_centers is not None else np.zeros((0, 3))
     P = np.asarray(points, float).reshape(-1, 3)
-    P = P[np.isfinite(P).all(axis=1)]
+    finite = np.isfinite(P).all(axis=1)
+    P = P[finite]
+    if point_camera is not None:
+        point_camera = np.asarray(point_camera).reshape(-1)
+        if len(point_camera) != len(finite):
+            raise BackendError(f"{len(point_camera)} camera labels for {len(finite)} points")
+        point_camera = point_camera[finite]
     if len(C) < 2 or len(P) < 10 or not np.isfinite(C).all():
         return None
     g = np.asarray(up_guess, float) / np.linalg.norm(up_guess)
@@ -152,10 +170,31 @@ def camera_heights(points: np.ndarray, camera_centers: np.ndarray | None, up_gue
     if ground is None:
         return None
     h = C @ ground[0] - ground[1]
+    if point_camera is not None:
+        own = _own_camera_heights(P, point_camera, C, ground[0], inlier * rough,
+                                  max_tilt_deg, min_camera_points, seed)
+        if len(own) >= 2:
+            h = own
     mid = float(np.median(h))
     if not mid > 0:
         return None
     return mid, 1.4826 * float(np.median(np.abs(h - mid))) / mid
+
+
+def _own_camera_heights(P: np.ndarray, point_camera: np.ndarray, C: np.ndarray, up: np.ndarray, inlier: float,
+                        max_tilt_deg: float, min_points: int, seed: int) -> np.ndarray:
+    """The heights [K<=S] of the cameras ``C`` [S,3] that have a ground of their own: :func:`own_ground` (normal
+    near ``up``) of the ``min_points`` or more points of ``P`` [N,3] they reconstructed (``point_camera`` [N],
+    an index into ``C``)."""
+    out = []
+    for i, c in enumerate(C):
+        mine = P[point_camera == i]
+        if len(mine) < min_points:
+            continue
+        ground = own_ground(mine, up, inlier, max_tilt_deg, seed=seed + i)
+        if ground is not None and c @ ground[0] - ground[1] > 0:
+            out.append(c @ ground[0] - ground[1])
+    return np.array(out)
 
 
 def hue_vectors(colors: np.ndarray | None, n: int, full_saturation: float = 0.08, min_value: int = 24

@@ -1018,7 +1018,7 @@ def test_worker_process_matches_inline_and_publishes_snapshots(loop_sequence, tm
     monkeypatch.setattr(Backend, "_measure_height", spy)
     reports = {mode: run(open_source(loop_sequence), _small_config(worker=mode), tmp_path / mode)
                for mode in ("inline", "process")}
-    # the pipeline says which of the stored points each keyframe gave: each camera's height above its own
+    # the pipeline says which of the stored points each keyframe gave (each camera above its own points' ground)
     assert len(measured) >= reports["inline"]["submaps"]
     assert all(c is not None and len(c) == s and c.sum() == n for n, s, c in measured)
     assert reports["process"]["backend_mode"] == "process" and reports["inline"]["backend_mode"] == "inline"

@@ -1336,7 +1336,7 @@ def _keyframes_with_pose_error(rng, place, cams, errors_z, tilt_deg=2.0):
     return np.concatenate(pts), np.array(out), np.array([len(p) for p in parts])
 
 
-def test_each_camera_above_its_own_points_ground_keeps_the_height_that_pose_error_spreads(tmp_path, rng):
+def test_each_camera_above_its_own_points_ground_keeps_the_height_that_pose_error_spreads(tmp_path, rng, caplog):
     """A backbone's pose error grows along a long car submap and moves each keyframe's points with its
     camera: above the submap's common ground the cameras spread, above each one's own points they keep
     the height (search.camera_heights with the points' keyframes); the back-end takes it with the points per
@@ -1363,14 +1363,21 @@ def test_each_camera_above_its_own_points_ground_keeps_the_height_that_pose_erro
     with pytest.raises(BackendError, match="labels"):
         camera_heights(pts, moved, [0.0, 0.0, 1.0], point_camera=labels[1:])
 
-    backend = Backend(BackendConfig(), SubmapStore(tmp_path / "s"))
+    # the back-end: points subsampled (at most 2,000 here) with their labels, keyframes that gave uneven shares
+    keep = np.ones(len(pts), bool)
+    keep[counts[:3].sum():counts[:3].sum() + counts[3] // 2] = False  # the 4th camera gave half as many
+    pts, counts = pts[keep], counts - np.eye(8, dtype=int)[3] * (counts[3] // 2)
+    config = BackendConfig(registration=dataclasses.replace(BackendConfig().registration, height_max_points=2000))
+    backend = Backend(config, SubmapStore(tmp_path / "s"))
     backend.map.gallery.ensure_grid(place, cams, None)
     for sid, per_camera in enumerate((None, counts, counts[1:])):  # unknown, known, inconsistent
         backend.map.add_submap(sid, None if sid == 0 else OdometryEdge(sid - 1, sid, np.eye(4), 0.01, 1.0, 100,
                                                                        "points"), pts)
-        backend._measure_height(sid, pts, moved, per_camera)
+        with caplog.at_level(logging.WARNING, logger="vggt_slam_pp.backend.backend"):
+            backend._measure_height(sid, pts, moved, per_camera)
     assert sorted(backend.map.graph.heights) == [1]
     assert abs(backend.map.height(1) - 1.6) < 0.03
+    assert "submap 2: " in caplog.text and "common ground" in caplog.text  # inconsistent counts: said, not used
 
 
 def test_a_lone_loop_whose_scale_the_cameras_measured_may_change_the_scale_beyond_one_sigma(tmp_path):

@@ -129,9 +129,9 @@ class Backend:
         self.skipped: list[int] = []  # submaps whose query was deferred (a worker catching up)
         self._deferred: deque[tuple[int, np.ndarray, int]] = deque()  # (submap, camera centres, its entry in
         # ``seconds``: a deferred query's time counts for its submap) still to query
-        self._held: list[tuple[int, np.ndarray | None, np.ndarray | None]] = []  # (submap, camera centres, points
-        # per camera): submaps waiting for the DEM
-        # grid (BackendConfig.grid_submaps), in order
+        # (submap, camera centres, points per camera): submaps waiting for the DEM grid (BackendConfig.grid_submaps),
+        # in order
+        self._held: list[tuple[int, np.ndarray | None, np.ndarray | None]] = []
         self._version = 0
 
     def seed_map(self, saved, localize_only: bool = False) -> None:

@@ -70,7 +70,8 @@ class Map:
         # per segment: (last submap with a height, its altitude, its height in odometry units) and the sums
         # sum (dlog H - climb)^2, sum dlog H^2, pairs (set_height)
         self._altitude: dict[int, tuple[tuple[int, float, float] | None, float, float, int]] = {}
-        # per segment: sums over its heights of 1, H, H^2, H - altitude, (H - altitude)^2 (odometry units)
+        # per segment: sums over its heights of 1, h, h^2, g, g^2 (h = H - H_0, g = (H - altitude) - (H_0 - altitude_0),
+        # odometry units, about the first height H_0), then H_0 and H_0 - altitude_0
         self._levels: dict[int, np.ndarray] = {}
         self.flying: set[int] = set()  # segments whose cameras' height follows their altitude: no height cue
         self._set_aside: dict[int, dict[int, float]] = {}  # a flying segment's heights, out of the graph meanwhile
@@ -177,8 +178,8 @@ class Map:
         0.42-0.57 over 26 heights that went from 0.7 to 2.1 with the altitude, the levels' 0.03-0.08 from the
         9th height on; docs/experiments.md, session 65); a car's altitude stays where its heights follow
         odometry's scale, and the tilt odometry drifts in moves it apart from them. The decision is taken again
-        at every new pair, on all of them: a car whose first few pairs happened to follow its climb gets its heights back, those set
-        aside meanwhile included (realistic block loop and KITTI 07-driven worlds, seed 15: the unexplained share
+        at every new height, on all of them: a car whose first few pairs happened to follow its climb gets its
+        heights back, those set aside meanwhile included (realistic block loop and KITTI 07-driven worlds, seed 15: the unexplained share
         ``sum (dlog H - climb)^2 / sum dlog H^2`` was 0.48 / 0.35 at pairs 5-6, 0.8-13 from pair 7 on; decided once
         and for all, their heights never came back: ATE reduction -33.5 / 0.0 %). ``cue`` False: the height weighs
         in the graph but gives its loops no scale cue (:meth:`height`)."""
@@ -219,11 +220,13 @@ class Map:
             change = float(np.log(H / last[2]))
             num, den, pairs = num + (change - climb) ** 2, den + change ** 2, pairs + 1
         self._altitude[seg] = ((sid, float(altitude), H), num, den, pairs)
-        sums = self._levels.setdefault(seg, np.zeros(5))
-        sums += [1.0, H, H * H, H - altitude, (H - altitude) ** 2]
+        sums = self._levels.setdefault(seg, np.array([0.0, 0.0, 0.0, 0.0, 0.0, H, H - altitude]))
+        h, g = H - sums[5], H - altitude - sums[6]  # about the first height and ground: no cancellation
+        sums[:5] += [1.0, h, h * h, g, g * g]
         n = sums[0]
         var_height, var_ground = sums[2] / n - (sums[1] / n) ** 2, sums[4] / n - (sums[3] / n) ** 2
-        levels = n > self.altitude_min_pairs and var_ground < (1.0 - self.altitude_explained) * var_height
+        levels = n > self.altitude_min_pairs and var_height > 0 and \
+            var_ground < (1.0 - self.altitude_explained) * var_height
         return levels or (pairs >= self.altitude_min_pairs and num < (1.0 - self.altitude_explained) * den)
 
     def _levelled_start(self, points: np.ndarray, camera_centers: np.ndarray | None) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 from vggt_slam_pp.backend.config import BackendConfig, FaultConfig
 from vggt_slam_pp.backend.graph import Edge, PoseGraph
 from vggt_slam_pp.backend.loops import PENDING, LoopCloser
-from vggt_slam_pp.backend.map import Map, subsample
+from vggt_slam_pp.backend.map import Map, subsample, subsample_indices
 from vggt_slam_pp.backend.places import CovisibilityStage, Gallery, camera_depth
 from vggt_slam_pp.backend.registration import LoopResult
 from vggt_slam_pp.backend.search import camera_heights
@@ -241,7 +241,7 @@ class Backend:
                 self.config.graph.height_factors or c.height_cue):
             return
         s, R, _ = decompose_sim3(m.graph.poses[sid])
-        keep = np.linspace(0, len(points) - 1, min(len(points), c.height_max_points)).astype(np.int64)  # evenly
+        keep = subsample_indices(len(points), c.height_max_points)
         labels = None  # each point's keyframe: each camera above its own ground (search.camera_heights)
         if points_per_camera is not None:
             counts = np.asarray(points_per_camera, np.int64).reshape(-1)

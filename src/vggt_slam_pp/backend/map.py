@@ -35,11 +35,16 @@ from vggt_slam_pp.resources import release_free_memory
 log = logging.getLogger(__name__)
 
 
+def subsample_indices(count: int, n: int) -> np.ndarray:
+    """The indices [min(count, n)] of at most ``n`` of ``count`` items, evenly spaced in their order."""
+    return np.linspace(0, count - 1, min(count, n)).astype(np.int64)
+
+
 def subsample(points: np.ndarray, n: int) -> np.ndarray:
     """At most ``n`` of ``points`` [N,3], evenly spaced in their order."""
     if len(points) <= n:
         return points
-    return points[np.linspace(0, len(points) - 1, n).astype(np.int64)]
+    return points[subsample_indices(len(points), n)]
 
 
 class Map:
@@ -179,8 +184,8 @@ class Map:
         9th height on; docs/experiments.md, session 65); a car's altitude stays where its heights follow
         odometry's scale, and the tilt odometry drifts in moves it apart from them. The decision is taken again
         at every new height, on all of them: a car whose first few pairs happened to follow its climb gets its
-        heights back, those set aside meanwhile included (realistic block loop and KITTI 07-driven worlds, seed 15: the unexplained share
-        ``sum (dlog H - climb)^2 / sum dlog H^2`` was 0.48 / 0.35 at pairs 5-6, 0.8-13 from pair 7 on; decided once
+        heights back, those set aside meanwhile included (realistic block loop and KITTI 07-driven worlds, seed
+        15: the unexplained share ``sum (dlog H - climb)^2 / sum dlog H^2`` was 0.48 / 0.35 at pairs 5-6, 0.8-13 from pair 7 on; decided once
         and for all, their heights never came back: ATE reduction -33.5 / 0.0 %). ``cue`` False: the height weighs
         in the graph but gives its loops no scale cue (:meth:`height`)."""
         seg = self.segment[sid]

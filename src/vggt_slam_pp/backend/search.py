@@ -192,8 +192,9 @@ def _own_camera_heights(P: np.ndarray, point_camera: np.ndarray, C: np.ndarray, 
         if len(mine) < min_points:
             continue
         ground = own_ground(mine, up, inlier, max_tilt_deg, seed=seed + i)
-        if ground is not None and c @ ground[0] - ground[1] > 0:
-            out.append(c @ ground[0] - ground[1])
+        height = c @ ground[0] - ground[1] if ground is not None else 0.0
+        if height > 0:
+            out.append(height)
     return np.array(out)
 
 

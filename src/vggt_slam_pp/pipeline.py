@@ -286,7 +286,7 @@ class SlamSystem:
             sm = subs[self._shown]
             if self._shown > 0:
                 self._odometry_pose = self._odometry_pose @ self.frontend.edges[self._shown - 1].T_prev_curr
-            pts, colors, centres = _points_and_cameras(sm)
+            pts, colors, centres, _ = _points_and_cameras(sm)
             self.viewer.submap(sm.id, pts, colors, centres, sm.frame_indices, self._odometry_pose)
             self._shown += 1
 
@@ -362,13 +362,15 @@ def _scale_aware(config: BackendConfig, backbone: Backbone) -> BackendConfig:
     return dataclasses.replace(config, covisibility=covis)
 
 
-def _points_and_cameras(sm) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """A finished submap's points [N,3], their colours [N,3] uint8 (None when unknown) and its keyframes'
-    camera centres [S,3], all in the submap's frame."""
+def _points_and_cameras(sm) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """A finished submap's points [N,3], their colours [N,3] uint8 (None when unknown), its keyframes'
+    camera centres [S,3], all in the submap's frame, and how many of the points (in order) each keyframe
+    gave [S] (they sum to N)."""
     pred = sm.prediction
-    pts = np.concatenate([p for p in pred.points if len(p)]) if pred.num_points() else np.zeros((0, 3))
+    counts = np.array([len(p) for p in pred.points], np.int64)
+    pts = np.concatenate([p for p in pred.points if len(p)]) if counts.sum() else np.zeros((0, 3))
     colors = sm.colors if sm.colors is not None and len(sm.colors) == len(pts) else None
-    return pts, colors, np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap])
+    return pts, colors, np.array([sim3_inverse(T)[:3, 3] for T in pred.T_cam_submap]), counts
 
 
 class _BackendFeeder:
@@ -400,7 +402,7 @@ class _BackendFeeder:
         t = time.perf_counter()
         while self.sent < len(self.frontend.submaps):
             sm = self.frontend.submaps[self.sent]
-            pts, colors, centres = _points_and_cameras(sm)
+            pts, colors, centres, counts = _points_and_cameras(sm)
             self.worker.store.put(sm.id, pts, colors)
             if sm.landmarks is not None and len(sm.landmarks):
                 self.worker.store.put_landmarks(sm.id, sm.landmarks)
@@ -409,7 +411,6 @@ class _BackendFeeder:
                 p = sm.prediction
                 self.worker.store.put_features(sm.id, features, p.T_cam_submap, p.valid, p.frame_indices)
             edge = self.frontend.edges[self.sent - 1] if self.sent > 0 else None
-            counts = np.array([len(p) for p in sm.prediction.points])
             self.worker.submit(SubmapMessage(sm.id, centres, edge, counts))
             self.sent += 1
         self.frontend.release_points(keep_last=1)

@@ -518,7 +518,7 @@ def _reason_kind(reason: str) -> str:
 def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int = 320, height: int = 240,
                        displacement: float = 1.0, positives: int = 40, negatives: int = 40,
                        workdir: str = "runs/bench_loops", seed: int = 0, noise: str = "default",
-                       progress=None) -> dict:
+                       heights: bool = True, progress=None) -> dict:
     """Loop registration alone, with no usable initial estimate: submap pairs of synthetic revisits
     (simulated backbone, ``noise`` profile), the query's estimate displaced by a random similarity anywhere
     within ``displacement`` times the drift bounds of the chain between the two
@@ -532,10 +532,16 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
     positive's (rotation deg, centroid m, log-scale) error. Negatives: pairs
     sharing no cell, with the odometry bounds of the real chain between them; any acceptance is false.
     Up to ``positives`` / ``negatives`` pairs per scene, drawn with ``seed``.
+    ``heights``: each submap's cameras' height above its own ground (each camera above its own points',
+    :func:`~vggt_slam_pp.backend.search.camera_heights`, up from the ground truth: the synthetic worlds' z) is
+    the loop's scale cue, measured to hold, as the back-end gives it on a car's recording (a submap whose
+    cameras spread more than ``RegistrationConfig.height_cue_max_spread`` gives none); False: no cue (the
+    figures before session 66).
     """
     from scipy.spatial import cKDTree
 
     from vggt_slam_pp.backend.registration import RegistrationConfig, drift_bounds, register_loop
+    from vggt_slam_pp.backend.search import camera_heights
     from vggt_slam_pp.dem.plane import GroundPlane
     from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
     from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
@@ -545,7 +551,7 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
     rng = np.random.default_rng(seed)
     config = RegistrationConfig()
     plane = GroundPlane(np.zeros(3), np.eye(3))
-    out: dict = {"scenes": {}, "displacement": displacement, "noise": noise}
+    out: dict = {"scenes": {}, "displacement": displacement, "noise": noise, "heights": heights}
     for scene in scenes:
         if progress:
             progress(scene)
@@ -566,6 +572,15 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
                  for sm in res.submaps]
         overlap = _overlap_matrix(_gt_footprints(source, [sm.frame_indices for sm in res.submaps]))
         n = len(points)
+        cue = [None] * n
+        for k, (sm, T) in enumerate(zip(res.submaps, truth, strict=True)) if heights else ():
+            pred = sm.prediction
+            labels = np.repeat(np.arange(len(pred.points)), [len(p) for p in pred.points])
+            up = T[:3, :3].T @ np.r_[0.0, 0.0, 1.0]  # the world's up in the submap's frame (its scale undone below)
+            measured = camera_heights(points[k], np.array([sim3_inverse(C)[:3, 3] for C in pred.T_cam_submap]),
+                                      up / np.linalg.norm(up), config.max_up_tilt_deg, seed=k, point_camera=labels)
+            if measured is not None and measured[1] <= config.height_cue_max_spread:
+                cue[k] = measured[0]
         world = [transform_points(T, P[:: max(1, len(P) // 2000)]) for T, P in zip(truth, points, strict=True)]
         trees = [cKDTree(w) for w in world]
 
@@ -591,7 +606,8 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
                 D[:3, 3] += centroid
                 T_q = D @ truth[q] if kind == "positive" else truth[q]
                 t0 = time.perf_counter()
-                r = register_loop(q, m, points[q], points[m], T_q, truth[m], plane, 2.0, bounds=bounds, config=config)
+                r = register_loop(q, m, points[q], points[m], T_q, truth[m], plane, 2.0, bounds=bounds, config=config,
+                                  height_query=cue[q], height_match=cue[m])
                 seconds.append(time.perf_counter() - t0)
                 if kind == "negative":
                     false += int(r.accepted)

@@ -541,7 +541,7 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
     from scipy.spatial import cKDTree
 
     from vggt_slam_pp.backend.registration import RegistrationConfig, drift_bounds, register_loop
-    from vggt_slam_pp.backend.search import camera_heights
+    from vggt_slam_pp.backend.search import camera_heights, point_cameras
     from vggt_slam_pp.dem.plane import GroundPlane
     from vggt_slam_pp.frontend.backbones.simulated import SimulatedBackbone, SimulatedNoise
     from vggt_slam_pp.frontend.frontend import Frontend, FrontendConfig
@@ -575,10 +575,10 @@ def bench_registration(scenes=("loop", "kitti00"), frames: int = 600, width: int
         cue = [None] * n
         for k, (sm, T) in enumerate(zip(res.submaps, truth, strict=True)) if heights else ():
             pred = sm.prediction
-            labels = np.repeat(np.arange(len(pred.points)), [len(p) for p in pred.points])
             up = T[:3, :3].T @ np.r_[0.0, 0.0, 1.0]  # the world's up in the submap's frame (its scale undone below)
             measured = camera_heights(points[k], np.array([sim3_inverse(C)[:3, 3] for C in pred.T_cam_submap]),
-                                      up / np.linalg.norm(up), config.max_up_tilt_deg, seed=k, point_camera=labels)
+                                      up / np.linalg.norm(up), config.max_up_tilt_deg, seed=k,
+                                      point_camera=point_cameras([len(p) for p in pred.points]))
             if measured is not None and measured[1] <= config.height_cue_max_spread:
                 cue[k] = measured[0]
         world = [transform_points(T, P[:: max(1, len(P) // 2000)]) for T, P in zip(truth, points, strict=True)]

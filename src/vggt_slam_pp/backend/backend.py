@@ -39,7 +39,7 @@ from vggt_slam_pp.backend.loops import PENDING, LoopCloser
 from vggt_slam_pp.backend.map import Map, subsample, subsample_indices
 from vggt_slam_pp.backend.places import CovisibilityStage, Gallery, camera_depth
 from vggt_slam_pp.backend.registration import LoopResult
-from vggt_slam_pp.backend.search import camera_heights
+from vggt_slam_pp.backend.search import camera_heights, point_cameras
 from vggt_slam_pp.backend.store import SubmapStore
 from vggt_slam_pp.dem import PlaneConfig
 from vggt_slam_pp.errors import DemError
@@ -246,7 +246,7 @@ class Backend:
         if points_per_camera is not None:
             counts = np.asarray(points_per_camera, np.int64).reshape(-1)
             if len(counts) == len(camera_centers) and counts.sum() == len(points):
-                labels = np.repeat(np.arange(len(counts)), counts)[keep]
+                labels = point_cameras(counts)[keep]
             else:
                 log.warning("submap %d: %d points per camera for %d cameras and %d points; its height is measured "
                             "above its common ground", sid, counts.sum(), len(camera_centers), len(points))

@@ -181,6 +181,13 @@ def camera_heights(points: np.ndarray, camera_centers: np.ndarray | None, up_gue
     return mid, 1.4826 * float(np.median(np.abs(h - mid))) / mid
 
 
+def point_cameras(points_per_camera: np.ndarray) -> np.ndarray:
+    """Each point's keyframe [sum of points_per_camera]: its index among the cameras, from how many of the
+    points (in order) each keyframe gave [S] (:func:`camera_heights`' ``point_camera``)."""
+    counts = np.asarray(points_per_camera, np.int64).reshape(-1)
+    return np.repeat(np.arange(len(counts)), counts)
+
+
 def _own_camera_heights(P: np.ndarray, point_camera: np.ndarray, C: np.ndarray, up: np.ndarray, inlier: float,
                         max_tilt_deg: float, min_points: int, seed: int) -> np.ndarray:
     """The heights [K<=S] of the cameras ``C`` [S,3] that have a ground of their own: :func:`own_ground` (normal

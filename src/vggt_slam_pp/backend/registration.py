@@ -18,7 +18,8 @@ rescaled to it, and a result at another scale is refused (``RegistrationConfig.h
    the bounds, scored by free-space consistency; "search_k").
 2. **3-D refinement.** Point-to-plane ICP (the rejection radius shrinking from ``icp_radius_tiles`` to
    ``inlier_radius_tiles``, then ``icp_final_iterations`` more at the inlier radius; log-scale free in
-   the last ``icp_scale_rounds``) of q's points onto m's, from each guess. ICP fits all of q's structure and
+   the last ``icp_scale_rounds``; loosely mutual pairs only, ``icp_reciprocity``) of q's points onto m's, from each
+   guess. ICP fits all of q's structure and
    at most ``icp_max_flat_points`` of its other points: flat ground constrains only height, tilt and scale,
    and as most of a submap it would outweigh the structure that fixes the in-plane motion. A fit with less than
    ``icp_check_share`` of the verification's structure overlap at the inlier radius before round
@@ -95,6 +96,9 @@ class RegistrationConfig:
     icp_check_iteration: int = 8  # a fit whose structure overlap at the inlier radius is then still below
     icp_check_share: float = 0.4  # this share of min_structure_overlap is dropped (0: never): of 1,823 fits on
     # the bench worlds, 451 ended at >= min_structure_overlap, one of them from below 0.1 here (docs/backend.md)
+    icp_reciprocity: float = 0.25  # an ICP pair holds only where the query point lies within this share of the
+    # radius of the match point's own nearest query point: past the overlap's edge, many query points pair with the
+    # match's last points and pull the query towards more overlap (0: every pair holds; docs/backend.md)
     inlier_radius_tiles: float = 0.2
     max_points: int = 4000
     icp_max_flat_points: int = 500  # ICP fits every structure point and at most this many others (drawn at
@@ -337,7 +341,7 @@ def point_normals(points: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
 
 def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals: np.ndarray, radii: np.ndarray,
                        scale_rounds: int = 3, damping: float = 1e-3, check: tuple[int, Callable] | None = None,
-                       anchors: tuple[np.ndarray, np.ndarray] | None = None
+                       anchors: tuple[np.ndarray, np.ndarray] | None = None, reciprocity: float = 0.0
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Sim(3) ``T`` with ``T src ~ dst`` by point-to-plane ICP, one damped Gauss-Newton step per radius.
 
@@ -354,6 +358,10 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
     matched by something other than closeness (image features), each a point-to-point residual with the
     same robust weights; they hold the in-plane motion that a ground-dominated cloud leaves free, and the
     returned information counts them (a loop refined with them is constrained in-plane by its images).
+    ``reciprocity`` > 0: a pair holds only where the match's point has, as its own nearest query point, one within
+    that share of the round's radius of the pair's query point (a loose mutual nearest neighbour; 0: every pair
+    within the radius holds). Past the overlap's edge many query points pair with the match's last points, and on
+    a partial overlap they pull the query towards more overlap; mutual pairs keep one of them.
     """
     T = np.eye(4)
     H = np.zeros((7, 7))
@@ -370,6 +378,13 @@ def icp_point_to_plane(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals:
         m = p.mean(0)
         pc = p - m
         res = np.einsum("ij,ij->i", n, p - q)
+        if reciprocity > 0:  # a pair holds where the match's point has its query point (nearly) as its nearest
+            targets, which = np.unique(j[ok], return_inverse=True)
+            back = cKDTree(p).query(dst[targets])[1]
+            held = np.linalg.norm(p[back[which]] - p, axis=1) <= reciprocity * r
+            if held.sum() < 10:
+                break
+            pc, n, res = pc[held], n[held], res[held]
         J = np.hstack([np.cross(pc, n), n, np.einsum("ij,ij->i", n, pc)[:, None]])
         w = 1.0 / (1.0 + (res / (r / 4.0)) ** 2)
         if anchors is not None:
@@ -469,7 +484,7 @@ def _ground_offset(src_ground: np.ndarray, dst_ground_tree: cKDTree, dst_ground_
 
 
 def symmetric_scale(Z: np.ndarray, src: np.ndarray, dst: np.ndarray, radius: float, iterations: int,
-                    normals_k: int = 10, dst_tree: cKDTree | None = None) -> np.ndarray:
+                    normals_k: int = 10, dst_tree: cKDTree | None = None, reciprocity: float = 0.0) -> np.ndarray:
     """``Z`` (T_match_query, from ICP of the query's points ``src`` [N,3] onto the match's ``dst`` [M,3]) with
     its scale replaced by the mean in log-scale of its own and the reverse fit's: the match's points, brought
     into the query's frame by ``Z^-1``, fitted back onto the query's by ``iterations`` rounds of point-to-plane
@@ -477,7 +492,7 @@ def symmetric_scale(Z: np.ndarray, src: np.ndarray, dst: np.ndarray, radius: flo
     part of the other that overlaps it (points past the overlap's edge pull inwards), so the two directions
     err in opposite ways; the rescaling is about the query's overlapping points, which stay in place.
     ``dst_tree``: ``dst``'s KD-tree, where the caller has it. Returns ``Z`` unchanged where either fit has
-    fewer than 10 pairs."""
+    fewer than 10 pairs. ``reciprocity``: that of :func:`icp_point_to_plane`, for the reverse fit."""
     s_z = float(decompose_sim3(Z)[0])
     r_q = radius / s_z  # the same radius in the query's units
     tree_q = cKDTree(src)
@@ -486,7 +501,7 @@ def symmetric_scale(Z: np.ndarray, src: np.ndarray, dst: np.ndarray, radius: flo
     if near.sum() < 10:
         return Z
     fit = icp_point_to_plane(back[near], tree_q, src, point_normals(src, tree_q, normals_k),
-                             np.full(iterations, r_q), scale_rounds=iterations)
+                             np.full(iterations, r_q), scale_rounds=iterations, reciprocity=reciprocity)
     d = (dst_tree or cKDTree(dst)).query(transform_points(Z, src), distance_upper_bound=radius)[0]
     if fit is None or np.isfinite(d).sum() < 10:
         return Z
@@ -709,7 +724,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
             rounds = 0 if at_cue and name != LANDMARKS_GUESS else c.icp_scale_rounds  # the cameras' scale held
             fit = icp_point_to_plane(start[fit_idx], tree, dst, normals, radii, rounds,
                                      check=(c.icp_check_iteration, promising) if c.icp_check_share > 0 else None,
-                                     anchors=None if la is None else (transform_points(G, la.query_xyz), la.match_xyz))
+                                     anchors=None if la is None else (transform_points(G, la.query_xyz), la.match_xyz),
+                                     reciprocity=c.icp_reciprocity)
             if fit is None:
                 log.debug("loop %d->%d guess %s: structure overlap below %.2f after %d ICP iterations", query, match,
                           name, c.icp_check_share * c.min_structure_overlap, c.icp_check_iteration)
@@ -776,7 +792,8 @@ def register_loop(query: int, match: int, points_query: np.ndarray, points_match
                               f"{best.rank:.2f})", **kw)
         T_icp = best.T_icp
         if c.symmetric_scale and not (cue is not None and height_measured):  # no measured scale holds ICP's
-            Z_sym = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k, dst_tree=tree)
+            Z_sym = symmetric_scale(Z, src, dst, r_in, c.icp_final_iterations, c.normals_k, dst_tree=tree,
+                                    reciprocity=c.icp_reciprocity)
             if outside_bounds(Z_sym) is None:  # the verified limits hold for the loop that enters the graph
                 Z, T_icp = Z_sym, Z_sym @ sim3_inverse(best.G)
                 C = T_world_match @ Z @ sim3_inverse(T_world_query)
